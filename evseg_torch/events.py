@@ -1,0 +1,298 @@
+"""The canonical event form, its validation, windowing and conversion to torch.
+
+At rest and at every I/O boundary, events are a NumPy structured array of dtype :data:`EVENT_DTYPE`:
+
+=====  ========  ==============================================================
+field  dtype     meaning
+=====  ========  ==============================================================
+``t``  int64     timestamp in microseconds (any origin), non-decreasing
+``x``  int16     pixel column, ``0 <= x < W``
+``y``  int16     pixel row, ``0 <= y < H``
+``p``  int8      polarity, ``-1`` (OFF) or ``+1`` (ON)
+=====  ========  ==============================================================
+
+The field names follow tonic, aedat and faery; what differs from them: tonic stores ``p`` as bool and
+``(W, H, P)`` sensor sizes, aedat/faery call the polarity ``on`` (bool) and store ``t`` as uint64. All
+of these are accepted by :func:`as_events`. Image sizes are ``(H, W)`` everywhere in evseg_torch.
+
+Inside torch, one window's events are an :class:`EventBatch`: ``xy`` float (N, 2) in pixels, ``t``
+float32 seconds relative to a reference time (absolute microseconds in float32 would lose
+sub-millisecond precision after a few seconds), ``p`` float (N,).
+
+Timestamps that decrease are rejected, not sorted: an event stream out of order is a defect of the
+recording or the reader, and results are always reported in the caller's order, so a silent sort
+would hide the defect. Sort first with ``events[np.argsort(events["t"], kind="stable")]``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from evseg_torch.errors import EventFormatError
+
+EVENT_DTYPE = np.dtype([("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "i1")])
+
+_POLARITY_FIELDS = ("p", "on", "polarity")
+_MAX_COORDINATE = np.iinfo(np.int16).max
+
+
+def as_events(data, sensor_size: tuple[int, int] | None = None) -> np.ndarray:
+    """Validate events and return them in the canonical form, as a new array.
+
+    Args:
+        data: either a structured array with integer field ``t`` (microseconds) and fields ``x``,
+            ``y`` and one of ``p``/``on``/``polarity``; or a float/int array of shape :math:`(N, 4)`
+            with columns ``[t_seconds, x, y, p]``. Polarity may be {0, 1}, {-1, +1} or bool.
+        sensor_size: ``(H, W)``; when given, every event must lie inside it.
+
+    Returns:
+        A new structured array of dtype :data:`EVENT_DTYPE`, shape :math:`(N,)`. The input is never
+        modified, and never returned itself.
+
+    Raises:
+        EventFormatError: wrong shape or dtype, NaN or inf, non-integer or out-of-sensor coordinates,
+            polarity outside {-1, 0, 1}, decreasing timestamps, or no events at all.
+
+    Examples:
+        >>> ev = as_events(np.array([[0.0, 3, 4, 1], [0.001, 5, 6, 0]]), sensor_size=(10, 10))
+        >>> ev["t"].tolist(), ev["p"].tolist()
+        ([0, 1000], [1, -1])
+    """
+    t_us, x, y, p = _columns(data)
+    if t_us.shape[0] == 0:
+        raise EventFormatError("no events: the input holds 0 events")
+    x = _pixel_coordinates(x, "x")
+    y = _pixel_coordinates(y, "y")
+    if sensor_size is not None:
+        height, width = check_sensor_size(sensor_size)
+        _check_inside(x, width, "x", "W")
+        _check_inside(y, height, "y", "H")
+    steps = np.diff(t_us)
+    if np.any(steps < 0):
+        first = int(np.argmax(steps < 0)) + 1
+        raise EventFormatError(
+            f"timestamps decrease at event {first} ({t_us[first - 1]} us then {t_us[first]} us); "
+            "sort the events by time first, e.g. events[np.argsort(events['t'], kind='stable')]"
+        )
+    events = np.empty(t_us.shape[0], dtype=EVENT_DTYPE)
+    events["t"] = t_us
+    events["x"] = x
+    events["y"] = y
+    events["p"] = _polarity(p)
+    return events
+
+
+def check_sensor_size(sensor_size) -> tuple[int, int]:
+    """Return ``(H, W)`` as ints, or raise :class:`EventFormatError` naming what is wrong."""
+    try:
+        height, width = (int(v) for v in sensor_size)
+    except (TypeError, ValueError):
+        raise EventFormatError(f"sensor_size must be (H, W), got {sensor_size!r}") from None
+    if not (0 < height <= _MAX_COORDINATE + 1 and 0 < width <= _MAX_COORDINATE + 1):
+        raise EventFormatError(f"sensor_size (H, W) must be positive and at most 32768, got {sensor_size!r}")
+    return height, width
+
+
+def sensor_size_from_tonic(sensor_size: tuple[int, int, int]) -> tuple[int, int]:
+    """Convert tonic's ``(W, H, P)`` sensor size to evseg_torch's ``(H, W)``."""
+    width, height, _ = sensor_size
+    return int(height), int(width)
+
+
+def sensor_size_to_tonic(sensor_size: tuple[int, int], polarities: int = 2) -> tuple[int, int, int]:
+    """Convert evseg_torch's ``(H, W)`` sensor size to tonic's ``(W, H, P)``."""
+    height, width = check_sensor_size(sensor_size)
+    return width, height, polarities
+
+
+def infer_sensor_size(events: np.ndarray) -> tuple[int, int]:
+    """The smallest ``(H, W)`` that holds every event of a canonical array."""
+    return int(events["y"].max()) + 1, int(events["x"].max()) + 1
+
+
+def to_array(events: np.ndarray) -> np.ndarray:
+    """Canonical events as a float64 array :math:`(N, 4)` with columns ``[t_seconds, x, y, p]``."""
+    return np.column_stack(
+        [events["t"] * 1e-6, events["x"], events["y"], events["p"]]
+    ).astype(np.float64)
+
+
+def window_ranges_by_time(
+    t_us: np.ndarray, window_ms: float, stride_ms: float | None = None, start_us: int | None = None
+) -> np.ndarray:
+    """Index ranges of fixed-duration windows over sorted timestamps.
+
+    Window ``i`` covers ``[start + i*stride, start + i*stride + window)``. Only windows that start
+    at or before the last timestamp are returned, so a stream can be processed chunk by chunk by
+    passing each chunk's timestamps with an explicit ``start_us``.
+
+    Args:
+        t_us: sorted timestamps in microseconds, :math:`(N,)`.
+        window_ms: window length in milliseconds.
+        stride_ms: step between window starts; defaults to ``window_ms`` (no overlap).
+        start_us: start of the first window; defaults to the first timestamp.
+
+    Returns:
+        int64 array :math:`(M, 2)` of ``[begin, end)`` indices into ``t_us``.
+    """
+    window_us, stride_us = _positive_us(window_ms, "window_ms"), _positive_us(stride_ms or window_ms, "stride_ms")
+    t_us = np.asarray(t_us)
+    if t_us.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    start = int(t_us[0]) if start_us is None else int(start_us)
+    count = max(0, (int(t_us[-1]) - start) // stride_us + 1)
+    starts = start + stride_us * np.arange(count, dtype=np.int64)
+    begin = np.searchsorted(t_us, starts, side="left")
+    end = np.searchsorted(t_us, starts + window_us, side="left")
+    return np.column_stack([begin, end]).astype(np.int64)
+
+
+def window_ranges_by_count(n_events: int, events_per_window: int, stride: int | None = None) -> np.ndarray:
+    """Index ranges of windows of ``events_per_window`` events, starting every ``stride`` events.
+
+    The last window may be shorter. Returns an int64 array :math:`(M, 2)` of ``[begin, end)``.
+    """
+    if int(events_per_window) <= 0:
+        raise EventFormatError(f"events_per_window must be positive, got {events_per_window}")
+    stride = int(stride or events_per_window)
+    if stride <= 0:
+        raise EventFormatError(f"stride must be positive, got {stride}")
+    begin = np.arange(0, max(int(n_events), 0), stride, dtype=np.int64)
+    end = np.minimum(begin + int(events_per_window), n_events)
+    return np.column_stack([begin, end]).astype(np.int64)
+
+
+class EventBatch(NamedTuple):
+    """One window of events as torch tensors.
+
+    Attributes:
+        xy: pixel coordinates, ``x`` the column and ``y`` the row, :math:`(N, 2)`.
+        t: seconds relative to the window's reference time, :math:`(N,)`.
+        p: polarity in {-1, +1}, :math:`(N,)`.
+    """
+
+    xy: torch.Tensor
+    t: torch.Tensor
+    p: torch.Tensor
+
+    def to(self, *args, **kwargs) -> EventBatch:
+        """Move or cast every tensor, as :meth:`torch.Tensor.to` does."""
+        return EventBatch(*(tensor.to(*args, **kwargs) for tensor in self))
+
+    def __len__(self) -> int:  # a NamedTuple's len would be 3, the number of fields
+        return int(self.t.shape[0])
+
+
+def to_torch(
+    events: np.ndarray,
+    t_ref_us: int | None = None,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> EventBatch:
+    """Convert canonical events to an :class:`EventBatch`.
+
+    Args:
+        events: canonical structured array :math:`(N,)` (see :func:`as_events`).
+        t_ref_us: reference time in microseconds; defaults to the first event's timestamp.
+        device: torch device of the output.
+        dtype: floating dtype of the output.
+
+    Returns:
+        :class:`EventBatch` with ``t`` in seconds relative to ``t_ref_us`` (computed in int64 first,
+        so no precision is lost to float32 absolute times).
+    """
+    if events.dtype != EVENT_DTYPE:
+        raise EventFormatError(f"to_torch expects canonical events of dtype {EVENT_DTYPE}, got {events.dtype}")
+    t_ref = int(events["t"][0]) if t_ref_us is None and len(events) else int(t_ref_us or 0)
+    t_rel = (events["t"] - t_ref).astype(np.float64) * 1e-6
+    xy = np.column_stack([events["x"], events["y"]])
+    return EventBatch(
+        xy=torch.as_tensor(xy, dtype=dtype, device=device),
+        t=torch.as_tensor(t_rel, dtype=dtype, device=device),
+        p=torch.as_tensor(events["p"], dtype=dtype, device=device),
+    )
+
+
+def _columns(data) -> tuple[np.ndarray, ...]:
+    if isinstance(data, torch.Tensor):
+        raise EventFormatError("events must be a NumPy array; convert tensors with tensor.cpu().numpy()")
+    if not isinstance(data, np.ndarray):
+        try:
+            data = np.asarray(data)
+        except (TypeError, ValueError) as err:
+            raise EventFormatError(f"events must be an array, got {type(data).__name__}: {err}") from None
+    if data.dtype.names is not None:
+        return _structured_columns(data)
+    if data.ndim != 2 or data.shape[1] != 4:
+        raise EventFormatError(
+            f"events must be an (N, 4) array [t_seconds, x, y, p] or a structured array, got shape {data.shape}"
+        )
+    if not (np.issubdtype(data.dtype, np.floating) or np.issubdtype(data.dtype, np.integer)):
+        raise EventFormatError(f"(N, 4) events must be numeric, got dtype {data.dtype}")
+    values = data.astype(np.float64)
+    if not np.all(np.isfinite(values)):
+        bad = int(np.argmax(~np.all(np.isfinite(values), axis=1)))
+        raise EventFormatError(f"events hold NaN or inf (first at row {bad})")
+    t_us = np.rint(values[:, 0] * 1e6).astype(np.int64)
+    return t_us, values[:, 1], values[:, 2], values[:, 3]
+
+
+def _structured_columns(data: np.ndarray) -> tuple[np.ndarray, ...]:
+    names = data.dtype.names
+    polarity = next((name for name in _POLARITY_FIELDS if name in names), None)
+    missing = [name for name in ("t", "x", "y") if name not in names] + ([] if polarity else ["p"])
+    if missing:
+        raise EventFormatError(f"structured events lack field(s) {missing}; they have {list(names)}")
+    if data.ndim != 1:
+        raise EventFormatError(f"structured events must be 1-D, got shape {data.shape}")
+    if not np.issubdtype(data.dtype["t"], np.integer):
+        raise EventFormatError(
+            f"structured field t must be integer microseconds, got {data.dtype['t']}; "
+            "pass seconds as an (N, 4) float array [t_seconds, x, y, p] instead"
+        )
+    columns = [data["x"], data["y"], data[polarity]]
+    for name, column in zip(("x", "y", polarity), columns, strict=True):
+        if column.dtype.kind == "f" and not np.all(np.isfinite(column)):
+            raise EventFormatError(f"field {name} holds NaN or inf")
+    return (data["t"].astype(np.int64), *columns)
+
+
+def _pixel_coordinates(values: np.ndarray, name: str) -> np.ndarray:
+    values = np.asarray(values)
+    if values.dtype.kind == "f" and np.any(values != np.floor(values)):
+        raise EventFormatError(f"{name} holds non-integer pixel coordinates; events sit on pixels")
+    if values.dtype.kind not in "fiub":
+        raise EventFormatError(f"{name} must be numeric, got dtype {values.dtype}")
+    if np.any(values < 0):
+        raise EventFormatError(f"{name} holds negative coordinates (min {values.min()})")
+    if np.any(values > _MAX_COORDINATE):
+        raise EventFormatError(f"{name} holds coordinates beyond {_MAX_COORDINATE} (max {values.max()})")
+    return values.astype(np.int16)
+
+
+def _check_inside(values: np.ndarray, size: int, name: str, size_name: str) -> None:
+    if np.any(values >= size):
+        raise EventFormatError(
+            f"{name} = {int(values.max())} lies outside the sensor ({size_name} = {size}); check sensor_size (H, W)"
+        )
+
+
+def _polarity(p: np.ndarray) -> np.ndarray:
+    p = np.asarray(p)
+    if p.dtype == np.bool_:
+        return np.where(p, 1, -1).astype(np.int8)
+    valid = (p == 0) | (p == 1) | (p == -1)
+    if not np.all(valid):
+        bad = p[~valid][0]
+        raise EventFormatError(f"polarity must be in {{0, 1}}, {{-1, +1}} or bool, found {bad!r}")
+    return np.where(p > 0, 1, -1).astype(np.int8)
+
+
+def _positive_us(milliseconds: float, name: str) -> int:
+    value = round(float(milliseconds) * 1000)
+    if value <= 0:
+        raise EventFormatError(f"{name} must be positive, got {milliseconds}")
+    return value
