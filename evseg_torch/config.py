@@ -1,0 +1,261 @@
+"""Hyper-parameters as nested frozen dataclasses, loaded strictly from YAML.
+
+Every hyper-parameter of the pipeline is documented once, here. Names follow EMSGC (``lambda_smooth``,
+``lambda_label``, ``n_iter_segmentation``) and pyprogressivex (``threshold``, ``conf``,
+``minimum_point_number``). Field names are unique across sections, so a flat keyword such as
+``lambda_smooth=40`` names exactly one field (:func:`replace_config`). Unknown keys, in files or in
+keywords, are errors that name the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from evseg_torch.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class WindowConfig:
+    """How a recording is cut into windows.
+
+    Attributes:
+        window_ms: window length in milliseconds (the paper uses 15–35 ms).
+        stride_ms: step between window starts; ``None`` means ``window_ms`` (no overlap).
+        events_per_window: if set, windows hold this many events instead of a fixed duration.
+        min_events: windows with fewer events are reported as empty rather than segmented.
+    """
+
+    window_ms: float = 30.0
+    stride_ms: float | None = None
+    events_per_window: int | None = None
+    min_events: int = 200
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """Level one's corners and Lucas-Kanade tracks (:mod:`evseg_torch.level_one.features`).
+
+    Attributes:
+        sub_window: length of the early and late event images, as a fraction of the window.
+        max_corners: at most this many Shi-Tomasi corners.
+        min_distance: minimum distance between corners in pixels.
+        quality_level: corners weaker than this fraction of the strongest response are dropped.
+        blur_sigma: Gaussian smoothing of the event images before the corner response.
+        lk_win_size: Lucas-Kanade window side in pixels.
+        lk_max_level: pyramid levels of Lucas-Kanade.
+        fb_threshold: forward-backward round-trip error above which a track is dropped, pixels.
+    """
+
+    sub_window: float = 0.4
+    max_corners: int = 300
+    min_distance: float = 5.0
+    quality_level: float = 0.05
+    blur_sigma: float = 1.0
+    lk_win_size: int = 15
+    lk_max_level: int = 2
+    fb_threshold: float = 1.0
+
+
+@dataclass(frozen=True)
+class LevelOneConfig:
+    """Progressive-X with GC-RANSAC proposals (:mod:`evseg_torch.level_one.progressive_x`).
+
+    Attributes:
+        threshold: inlier-outlier threshold τ in pixels (paper: 1.5); decisions use 1.5 τ.
+        conf: RANSAC confidence μ (paper: 0.95).
+        spatial_coherence_weight: Potts weight of GC-RANSAC's labelling and of PEARL.
+        neighborhood_ball_radius: radius of the correspondences' neighbourhood graph, pixels.
+        maximum_tanimoto_similarity: proposals more similar than this to the compound model are rejected.
+        max_iters: maximum RANSAC iterations per proposal.
+        minimum_point_number: minimum inliers of an instance; also PEARL's label cost.
+        maximum_model_number: at most this many instances; -1 means no limit.
+        reuse_models: bootstrap each window with the previous window's models (paper Table III).
+    """
+
+    threshold: float = 1.5
+    conf: float = 0.95
+    spatial_coherence_weight: float = 0.14
+    neighborhood_ball_radius: float = 20.0
+    maximum_tanimoto_similarity: float = 0.5
+    max_iters: int = 1000
+    minimum_point_number: int = 10
+    maximum_model_number: int = -1
+    reuse_models: bool = True
+
+
+@dataclass(frozen=True)
+class LevelTwoConfig:
+    """EMSGC's spatio-temporal graph cut with contrast-maximisation refits (:mod:`evseg_torch.level_two`).
+
+    Attributes:
+        lambda_data: weight λ_D of the data term (EMSGC: 1).
+        lambda_smooth: Potts weight λ_P (EMSGC: 25–43).
+        lambda_label: label cost λ_M, the MDL term (EMSGC: 8000; 4000 on EED occlusions).
+        n_iter_segmentation: outer block-coordinate-descent iterations (EMSGC: 5).
+        n_iter_labeling: α-expansion cycles per labelling (EMSGC: 2).
+        sigma: Gaussian width of the images of warped events, pixels (EMSGC: 1).
+        optimizer: ``lbfgs`` or ``adam`` for the contrast-maximisation refits.
+        max_iter: optimiser iterations per refit.
+        lr: learning rate (Adam) or initial step (L-BFGS).
+        output_min_count: at output, pixels of a cluster's compensated image (σ = 0) holding more than this
+            many events form the cluster's dense support (EMSGC: 2).
+    """
+
+    lambda_data: float = 1.0
+    lambda_smooth: float = 30.0
+    lambda_label: float = 8000.0
+    n_iter_segmentation: int = 5
+    n_iter_labeling: int = 2
+    sigma: float = 1.0
+    optimizer: str = "lbfgs"
+    max_iter: int = 10
+    lr: float = 1.0
+    output_min_count: float = 2.0
+
+
+@dataclass(frozen=True)
+class SegmenterConfig:
+    """Everything :class:`~evseg_torch.pipeline.CascadedSegmenter` needs.
+
+    Attributes:
+        motion_model: ``translation``, ``affine4`` (the paper's) or ``rotation3d``.
+        focal: ``(fx, fy)`` for ``rotation3d``; ``None`` means ``max(H, W)``.
+        seed: seed of every random choice, so runs are reproducible.
+    """
+
+    motion_model: str = "affine4"
+    focal: tuple[float, float] | None = None
+    seed: int = 0
+    window: WindowConfig = field(default_factory=WindowConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    level_one: LevelOneConfig = field(default_factory=LevelOneConfig)
+    level_two: LevelTwoConfig = field(default_factory=LevelTwoConfig)
+
+
+def config_from_dict(data: dict, cls: type = SegmenterConfig, where: str = ""):
+    """Build a config dataclass from a (nested) mapping, rejecting unknown keys and wrong types."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where or 'config'} must be a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(f"unknown config key {where}{unknown[0]!r}; known keys here: {sorted(names)}")
+    values = {}
+    for name, value in data.items():
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint):
+            values[name] = config_from_dict(value, hint, f"{where}{name}.")
+        else:
+            values[name] = _coerce(value, hint, f"{where}{name}")
+    return cls(**values)
+
+
+def config_to_dict(config) -> dict:
+    """A plain nested dict of a config (tuples become lists), ready for YAML or JSON."""
+    return _plain(dataclasses.asdict(config))
+
+
+def load_config(path: str | Path) -> SegmenterConfig:
+    """Load a YAML config file strictly; keys left out keep their defaults."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise ConfigError(f"cannot read config file {path}: {err.strerror or err}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ConfigError(f"config file {path} is not valid YAML: {err}") from None
+    try:
+        return config_from_dict(data or {})
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
+
+
+def dump_config(config: SegmenterConfig, path: str | Path) -> None:
+    """Write a config as YAML (it loads back equal with :func:`load_config`)."""
+    Path(path).write_text(yaml.safe_dump(config_to_dict(config), sort_keys=False))
+
+
+def replace_config(config: SegmenterConfig, **overrides) -> SegmenterConfig:
+    """A copy of ``config`` with fields replaced by their flat names, e.g. ``lambda_smooth=40``.
+
+    A whole section may be replaced too (``level_two=LevelTwoConfig(...)`` or a dict of its fields).
+    """
+    sections = {f.name: f.type for f in dataclasses.fields(config) if dataclasses.is_dataclass(getattr(config, f.name))}
+    top, nested = {}, {name: {} for name in sections}
+    for key, value in overrides.items():
+        if key in sections:
+            top[key] = value if dataclasses.is_dataclass(value) else config_from_dict(
+                value, type(getattr(config, key)), f"{key}."
+            )
+            continue
+        owner = next((s for s in sections if key in {f.name for f in dataclasses.fields(getattr(config, s))}), None)
+        if owner is None and key not in {f.name for f in dataclasses.fields(config)}:
+            raise ConfigError(f"unknown config key {key!r}")
+        if owner is None:
+            top[key] = _coerce(value, typing.get_type_hints(SegmenterConfig)[key], key)
+        else:
+            nested[owner][key] = value
+    for section, values in nested.items():
+        if values:
+            current = config_to_dict(top.get(section, getattr(config, section)))
+            top[section] = config_from_dict({**current, **values}, type(getattr(config, section)), f"{section}.")
+    return dataclasses.replace(config, **top)
+
+
+def _coerce(value, hint, where: str):
+    options = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
+    if value is None:
+        if type(None) in options:
+            return None
+        raise ConfigError(f"config key {where!r} must not be null")
+    errors = []
+    for option in options:
+        if option is type(None):
+            continue
+        try:
+            return _coerce_one(value, option)
+        except (TypeError, ValueError) as err:
+            errors.append(str(err))
+    raise ConfigError(f"config key {where!r} has invalid value {value!r}: {'; '.join(errors)}")
+
+
+def _coerce_one(value, hint):
+    if typing.get_origin(hint) is tuple:
+        kinds = typing.get_args(hint)
+        if not isinstance(value, list | tuple) or len(value) != len(kinds):
+            raise TypeError(f"expected a list of {len(kinds)} values")
+        return tuple(_coerce_one(v, k) for v, k in zip(value, kinds, strict=True))
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise TypeError("expected true or false")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TypeError("expected an integer")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise TypeError("expected a number")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise TypeError("expected a string")
+        return value
+    raise TypeError(f"unsupported type {hint}")
+
+
+def _plain(value):
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
