@@ -1,0 +1,137 @@
+"""Pure metric functions for motion segmentation (NumPy).
+
+Definitions (reference §3):
+
+* **Event-labelling accuracy**: the fraction of ground-truth events (noise excluded) whose predicted
+  cluster is matched to their ground-truth layer, under the best one-to-one matching of clusters to
+  layers (Hungarian algorithm on the overlap counts).
+* **Per-object event IoU**: for each ground-truth object, |E_gt ∩ E_pred| / |E_gt ∪ E_pred| between its
+  events and the events of the cluster matched to it (0 when no cluster is matched). This is the
+  event-wise IoU that MOMS, 0-MMS and SpikeMS report.
+* **Convex-hull mask IoU**: EMSGC's / the IROS paper's EV-IMO definition: a cluster's dense mask is the
+  convex hull of its motion-compensated events; IoU of the union of object masks against the
+  ground-truth mask.
+* **Box IoU**: intersection over union of ``[x, y, w, h]`` boxes (EED's detection criterion: IoU > 0.5).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from evseg_torch.errors import ShapeError
+
+
+def match_clusters(pred: np.ndarray, gt: np.ndarray, ignore: int = -1) -> dict[int, int]:
+    """Best one-to-one matching of predicted clusters to ground-truth layers by shared events.
+
+    Args:
+        pred: predicted cluster of each event, :math:`(N,)` (negative = unassigned).
+        gt: ground-truth layer of each event, :math:`(N,)`; events labelled ``ignore`` are left out.
+
+    Returns:
+        ``{cluster: layer}`` for every matched pair with at least one shared event.
+    """
+    pred, gt = _labels(pred, gt)
+    keep = (gt != ignore) & (pred >= 0)
+    if not np.any(keep):
+        return {}
+    clusters, pred_idx = np.unique(pred[keep], return_inverse=True)
+    layers, gt_idx = np.unique(gt[keep], return_inverse=True)
+    overlap = np.zeros((len(clusters), len(layers)), dtype=np.int64)
+    np.add.at(overlap, (pred_idx, gt_idx), 1)
+    rows, cols = linear_sum_assignment(-overlap)
+    return {int(clusters[r]): int(layers[c]) for r, c in zip(rows, cols, strict=True) if overlap[r, c] > 0}
+
+
+def labelling_accuracy(pred: np.ndarray, gt: np.ndarray, ignore: int = -1) -> float:
+    """Fraction of ground-truth events (``gt != ignore``) in the cluster matched to their layer."""
+    pred, gt = _labels(pred, gt)
+    keep = gt != ignore
+    if not np.any(keep):
+        return float("nan")
+    mapping = match_clusters(pred, gt, ignore)
+    mapped = np.array([mapping.get(int(c), ignore - 1) for c in pred[keep]]) if len(mapping) else np.full(
+        int(keep.sum()), ignore - 1
+    )
+    return float(np.mean(mapped == gt[keep]))
+
+
+def per_object_iou(pred: np.ndarray, gt: np.ndarray, objects=None, ignore: int = -1) -> dict[int, float]:
+    """Event IoU of each ground-truth object with the cluster matched to it.
+
+    Args:
+        objects: the layers to score; defaults to every layer except 0 (the background) and ``ignore``.
+
+    Returns:
+        ``{layer: IoU}``; events labelled ``ignore`` (noise) are left out of both sets.
+    """
+    pred, gt = _labels(pred, gt)
+    mapping = {layer: cluster for cluster, layer in match_clusters(pred, gt, ignore).items()}
+    pred, gt = pred[gt != ignore], gt[gt != ignore]
+    if objects is None:
+        objects = [int(v) for v in np.unique(gt) if v not in (0, ignore)]
+    scores = {}
+    for layer in objects:
+        in_gt = gt == layer
+        in_pred = pred == mapping[layer] if layer in mapping else np.zeros_like(in_gt)
+        union = np.count_nonzero(in_gt | in_pred)
+        scores[int(layer)] = float(np.count_nonzero(in_gt & in_pred) / union) if union else float("nan")
+    return scores
+
+
+def box_of_points(xy: np.ndarray) -> np.ndarray:
+    """Axis-aligned ``[x, y, w, h]`` box around points :math:`(N, 2)`; NaNs when there are none."""
+    xy = np.asarray(xy, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise ShapeError(f"points must be (N, 2), got {xy.shape}")
+    if len(xy) == 0:
+        return np.full(4, np.nan)
+    low, high = xy.min(axis=0), xy.max(axis=0)
+    return np.array([low[0], low[1], high[0] - low[0], high[1] - low[1]])
+
+
+def box_intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Intersection area of ``[x, y, w, h]`` boxes, broadcasting over leading dimensions."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    width = np.minimum(a[..., 0] + a[..., 2], b[..., 0] + b[..., 2]) - np.maximum(a[..., 0], b[..., 0])
+    height = np.minimum(a[..., 1] + a[..., 3], b[..., 1] + b[..., 3]) - np.maximum(a[..., 1], b[..., 1])
+    return np.clip(width, 0, None) * np.clip(height, 0, None)
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of ``[x, y, w, h]`` boxes, broadcasting; 0 where the union is empty or a box is NaN."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    inter = box_intersection(a, b)
+    union = a[..., 2] * a[..., 3] + b[..., 2] * b[..., 3] - inter
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where(union > 0, inter / union, 0.0)
+    return np.nan_to_num(iou, nan=0.0)
+
+
+def convex_hull_mask(xy: np.ndarray, sensor_size: tuple[int, int]) -> np.ndarray:
+    """Dense mask of the convex hull of points, :math:`(H, W)` bool (EMSGC's EV-IMO mask)."""
+    height, width = sensor_size
+    mask = np.zeros((height, width), dtype=np.uint8)
+    xy = np.asarray(xy, dtype=np.float64)
+    if len(xy) >= 1:
+        hull = cv2.convexHull(np.rint(xy).astype(np.int32).reshape(-1, 1, 2))
+        cv2.fillConvexPoly(mask, hull, 1)
+    return mask.astype(bool)
+
+
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """IoU of two boolean masks of equal shape; NaN when both are empty."""
+    a, b = np.asarray(a, dtype=bool), np.asarray(b, dtype=bool)
+    if a.shape != b.shape:
+        raise ShapeError(f"masks differ in shape: {a.shape} and {b.shape}")
+    union = np.count_nonzero(a | b)
+    return float(np.count_nonzero(a & b) / union) if union else float("nan")
+
+
+def _labels(pred, gt) -> tuple[np.ndarray, np.ndarray]:
+    pred, gt = np.asarray(pred).astype(np.int64), np.asarray(gt).astype(np.int64)
+    if pred.shape != gt.shape or pred.ndim != 1:
+        raise ShapeError(f"pred and gt must be (N,) of equal length, got {pred.shape} and {gt.shape}")
+    return pred, gt

@@ -1,0 +1,79 @@
+import numpy as np
+import pytest
+
+from evseg_torch.errors import ShapeError
+from evseg_torch.metrics import (
+    box_intersection,
+    box_iou,
+    box_of_points,
+    convex_hull_mask,
+    labelling_accuracy,
+    mask_iou,
+    match_clusters,
+    per_object_iou,
+)
+
+
+class TestEventMetrics:
+    def test_permuted_labels_are_perfect(self):
+        gt = np.array([0, 0, 0, 1, 1, 2, -1])
+        pred = np.array([5, 5, 5, 3, 3, 0, 0])
+        assert match_clusters(pred, gt) == {5: 0, 3: 1, 0: 2}
+        assert labelling_accuracy(pred, gt) == 1.0
+        assert per_object_iou(pred, gt) == {1: 1.0, 2: 1.0}
+
+    def test_hand_computed_case(self):
+        gt = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+        pred = np.array([0, 0, 0, 1, 1, 1, 1, 0])
+        # Matching 0->0, 1->1: events 3 and 7 are wrong.
+        assert labelling_accuracy(pred, gt) == pytest.approx(6 / 8)
+        # Object 1: gt {4,5,6,7}, cluster 1 {3,4,5,6}: intersection 3, union 5.
+        assert per_object_iou(pred, gt) == {1: pytest.approx(3 / 5)}
+
+    def test_merged_clusters_lose_the_unmatched_layer(self):
+        gt = np.array([0, 0, 1, 1])
+        pred = np.zeros(4, dtype=int)
+        assert labelling_accuracy(pred, gt) == 0.5
+        assert per_object_iou(pred, gt) == {1: 0.0}
+
+    def test_unassigned_events_count_as_wrong(self):
+        assert labelling_accuracy(np.array([-1, 0]), np.array([0, 0])) == 0.5
+
+    def test_shape_error(self):
+        with pytest.raises(ShapeError, match="equal length"):
+            labelling_accuracy(np.zeros(3), np.zeros(4))
+
+
+class TestBoxes:
+    def test_iou_hand_computed(self):
+        a = np.array([0.0, 0, 10, 10])
+        b = np.array([5.0, 5, 10, 10])
+        assert box_intersection(a, b) == 25
+        assert box_iou(a, b) == pytest.approx(25 / 175)
+        assert box_iou(a, a) == 1.0
+        assert box_iou(a, np.array([20.0, 20, 1, 1])) == 0.0
+        assert box_iou(a, np.full(4, np.nan)) == 0.0
+
+    def test_broadcasting(self):
+        boxes = np.array([[0.0, 0, 10, 10], [0, 0, 5, 10]])
+        np.testing.assert_allclose(box_iou(boxes, np.array([0.0, 0, 10, 10])), [1.0, 0.5])
+
+    def test_box_of_points(self):
+        np.testing.assert_allclose(box_of_points(np.array([[1.0, 2], [4, 8], [2, 3]])), [1, 2, 3, 6])
+        assert np.all(np.isnan(box_of_points(np.zeros((0, 2)))))
+
+
+class TestMasks:
+    def test_convex_hull_of_square_corners(self):
+        mask = convex_hull_mask(np.array([[2.0, 2], [6, 2], [6, 5], [2, 5]]), (10, 10))
+        assert mask.sum() == 5 * 4 and mask[3, 4] and not mask[1, 1]
+
+    def test_mask_iou(self):
+        a = np.zeros((4, 4), bool)
+        b = np.zeros((4, 4), bool)
+        a[:2] = True
+        b[1:3] = True
+        assert mask_iou(a, b) == pytest.approx(4 / 12)
+        assert np.isnan(mask_iou(np.zeros((2, 2)), np.zeros((2, 2))))
+        with pytest.raises(ShapeError):
+            mask_iou(a, np.zeros((3, 3)))
