@@ -26,6 +26,7 @@ would hide the defect. Sort first with ``events[np.argsort(events["t"], kind="st
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from typing import NamedTuple
 
 import numpy as np
@@ -165,6 +166,76 @@ def window_ranges_by_count(n_events: int, events_per_window: int, stride: int | 
     return np.column_stack([begin, end]).astype(np.int64)
 
 
+class Window(NamedTuple):
+    """One window cut from a stream: its index, its events and the stream index of its first event."""
+
+    index: int
+    events: np.ndarray
+    offset: int
+
+
+def iter_windows(
+    chunks: Iterable[np.ndarray],
+    *,
+    window_ms: float | None = None,
+    stride_ms: float | None = None,
+    events_per_window: int | None = None,
+    stride_events: int | None = None,
+) -> Iterator[Window]:
+    """Cut a stream of canonical event chunks into windows, holding only what the next window needs.
+
+    Windows are either ``window_ms`` long and start every ``stride_ms`` (default: no overlap), or hold
+    ``events_per_window`` events and start every ``stride_events``. Memory stays bounded by one chunk
+    plus one window, however long the stream. The chunks must continue each other in time.
+
+    Args:
+        chunks: canonical event arrays (:data:`EVENT_DTYPE`), consecutive pieces of one recording.
+
+    Yields:
+        :class:`Window` tuples; ``offset`` locates the window's first event in the whole stream, so
+        per-window results map back to the caller's order.
+
+    Raises:
+        EventFormatError: on no window size, on both kinds at once, or when time runs backwards
+            between chunks.
+    """
+    if (window_ms is None) == (events_per_window is None):
+        raise EventFormatError("give exactly one of window_ms and events_per_window")
+    buffer = np.zeros(0, dtype=EVENT_DTYPE)
+    buffer_offset, index, next_start = 0, 0, None
+    if window_ms is not None:
+        window_us = _positive_us(window_ms, "window_ms")
+        stride_us = _positive_us(stride_ms or window_ms, "stride_ms")
+    else:
+        size = int(events_per_window)
+        stride = int(stride_events or size)
+        if size <= 0 or stride <= 0:
+            raise EventFormatError(f"events_per_window and its stride must be positive, got {size}, {stride}")
+    for chunk in _checked_chunks(chunks):
+        buffer = np.concatenate([buffer, chunk])
+        if window_ms is not None:
+            next_start = int(buffer["t"][0]) if next_start is None else next_start
+            # A window is complete once an event at or after its end has arrived.
+            while len(buffer) and buffer["t"][-1] >= next_start + window_us:
+                yield _time_window(buffer, buffer_offset, index, next_start, window_us)
+                index, next_start = index + 1, next_start + stride_us
+                drop = int(np.searchsorted(buffer["t"], next_start, side="left"))
+                buffer, buffer_offset = buffer[drop:], buffer_offset + drop
+        else:
+            while len(buffer) >= size:
+                yield Window(index, buffer[:size].copy(), buffer_offset)
+                index += 1
+                buffer, buffer_offset = buffer[stride:], buffer_offset + stride
+    if window_ms is not None:
+        while next_start is not None and len(buffer) and buffer["t"][-1] >= next_start:
+            yield _time_window(buffer, buffer_offset, index, next_start, window_us)
+            index, next_start = index + 1, next_start + stride_us
+            drop = int(np.searchsorted(buffer["t"], next_start, side="left"))
+            buffer, buffer_offset = buffer[drop:], buffer_offset + drop
+    elif len(buffer):
+        yield Window(index, buffer.copy(), buffer_offset)
+
+
 class EventBatch(NamedTuple):
     """One window of events as torch tensors.
 
@@ -214,6 +285,24 @@ def to_torch(
         t=torch.as_tensor(t_rel, dtype=dtype, device=device),
         p=torch.as_tensor(events["p"], dtype=dtype, device=device),
     )
+
+
+def _time_window(buffer: np.ndarray, offset: int, index: int, start: int, length: int) -> Window:
+    begin, end = np.searchsorted(buffer["t"], [start, start + length], side="left")
+    return Window(index, buffer[begin:end].copy(), offset + int(begin))
+
+
+def _checked_chunks(chunks: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
+    last = None
+    for chunk in chunks:
+        if chunk.dtype != EVENT_DTYPE:
+            raise EventFormatError(f"stream chunks must be canonical events of dtype {EVENT_DTYPE}, got {chunk.dtype}")
+        if len(chunk) == 0:
+            continue
+        if last is not None and chunk["t"][0] < last:
+            raise EventFormatError(f"timestamps decrease between chunks ({last} us then {chunk['t'][0]} us)")
+        last = int(chunk["t"][-1])
+        yield chunk
 
 
 def _columns(data) -> tuple[np.ndarray, ...]:

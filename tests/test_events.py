@@ -8,6 +8,7 @@ from evseg_torch.events import (
     as_events,
     check_sensor_size,
     infer_sensor_size,
+    iter_windows,
     sensor_size_from_tonic,
     sensor_size_to_tonic,
     to_array,
@@ -123,3 +124,40 @@ def test_to_torch_relative_times_keep_precision(device, dtype):
     assert batch.p.tolist() == [1.0, -1.0]
     assert len(batch) == 2
     assert to_torch(ev, t_ref_us=int(ev["t"][1])).t[0].item() == pytest.approx(-1e-6)
+
+
+class TestIterWindows:
+    @staticmethod
+    def _stream(n=3000, seed=0):
+        t = np.sort(np.random.default_rng(seed).integers(0, 100_000, n))
+        return as_events(np.column_stack([t * 1e-6, t % 7, t % 5, t % 2]))
+
+    @pytest.mark.parametrize("chunk", [1, 7, 500, 10_000])
+    @pytest.mark.parametrize(("window", "stride"), [(10, None), (10, 4), (7.5, 12)])
+    def test_time_windows_match_searchsorted_whatever_the_chunking(self, chunk, window, stride):
+        events = self._stream()
+        chunks = (events[i : i + chunk] for i in range(0, len(events), chunk))
+        got = list(iter_windows(chunks, window_ms=window, stride_ms=stride))
+        ranges = window_ranges_by_time(events["t"], window, stride)
+        assert [w.index for w in got] == list(range(len(ranges)))
+        for w, (begin, end) in zip(got, ranges, strict=True):
+            assert w.offset == begin or begin == end
+            np.testing.assert_array_equal(w.events, events[begin:end])
+
+    @pytest.mark.parametrize("chunk", [3, 1000])
+    def test_count_windows(self, chunk):
+        events = self._stream(1000)
+        chunks = (events[i : i + chunk] for i in range(0, len(events), chunk))
+        got = list(iter_windows(chunks, events_per_window=300, stride_events=200))
+        ranges = window_ranges_by_count(len(events), 300, 200)
+        assert len(got) == len(ranges)
+        for w, (begin, end) in zip(got, ranges, strict=True):
+            assert w.offset == begin
+            np.testing.assert_array_equal(w.events, events[begin:end])
+
+    def test_errors(self):
+        events = self._stream(100)
+        with pytest.raises(EventFormatError, match="exactly one"):
+            list(iter_windows([events]))
+        with pytest.raises(EventFormatError, match="between chunks"):
+            list(iter_windows([events[50:], events[:50]], window_ms=5))
