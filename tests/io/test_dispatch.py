@@ -1,0 +1,133 @@
+import numpy as np
+import pytest
+
+from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
+from evseg_torch.events import EVENT_DTYPE
+from evseg_torch.io import SUPPORTED_SUFFIXES, iter_event_chunks, load_events, read_sensor_size
+from tests.io._writers import HEIGHT, WIDTH, make_events, write_npz_columns, write_txt
+
+
+class TestRoundTrip:
+    def test_load_equals_source(self, written):
+        path, source, _ = written
+        events = load_events(path)
+        assert events.dtype == EVENT_DTYPE
+        np.testing.assert_array_equal(events, source)
+
+    def test_read_sensor_size(self, written):
+        path, _, size = written
+        assert read_sensor_size(path) == size
+
+    def test_result_is_an_owned_writable_copy(self, written):
+        path, source, _ = written
+        events = load_events(path)
+        assert events.flags.writeable and events.flags.owndata
+        events["x"] = 0
+        np.testing.assert_array_equal(load_events(path), source)
+
+    def test_str_path(self, written):
+        path, source, _ = written
+        np.testing.assert_array_equal(load_events(str(path)), source)
+
+
+class TestChunks:
+    @pytest.mark.parametrize("chunk_size", [1, 7, 500, 10_000])
+    def test_chunks_concatenate_to_full(self, written, chunk_size):
+        path, source, _ = written
+        chunks = list(iter_event_chunks(path, chunk_size))
+        assert all(0 < len(chunk) <= chunk_size for chunk in chunks)
+        assert all(chunk.dtype == EVENT_DTYPE for chunk in chunks)
+        np.testing.assert_array_equal(np.concatenate(chunks), source)
+
+    def test_full_chunks_except_the_last(self, written):
+        path, source, _ = written
+        sizes = [len(chunk) for chunk in iter_event_chunks(path, 64)]
+        expected = [64] * (len(source) // 64) + [len(source) % 64]
+        if path.suffix == ".txt":  # the header comment takes one line of the first block
+            expected = [63] + [64] * ((len(source) - 63) // 64) + [(len(source) - 63) % 64]
+        assert sizes == [size for size in expected if size]
+
+    @pytest.mark.parametrize("chunk_size", [0, -3, 2.5, True, "10"])
+    def test_bad_chunk_size(self, tmp_path, chunk_size):
+        with pytest.raises(ConfigError, match="chunk_size must be a positive integer"):
+            iter_event_chunks(tmp_path / "events.txt", chunk_size)
+
+    def test_decrease_across_a_chunk_boundary(self, tmp_path):
+        events = make_events(20)
+        events["t"][10:] -= 10_000  # the jump backwards sits exactly between chunks of 10
+        path = tmp_path / "events.npz"
+        write_npz_columns(path, events)
+        chunks = iter_event_chunks(path, 10)
+        next(chunks)
+        with pytest.raises(EventFormatError, match=r"events\.npz: timestamps decrease at event 10"):
+            next(chunks)
+
+    def test_decrease_inside_a_chunk_names_the_chunk(self, tmp_path):
+        events = make_events(20)
+        events["t"][15:] -= 10_000
+        path = tmp_path / "events.txt"
+        write_txt(path, events)
+        with pytest.raises(EventFormatError, match=r"events\.txt: in the chunk starting at event 9"):
+            list(iter_event_chunks(path, 10))
+
+    def test_missing_file_raises_at_once(self, tmp_path):
+        with pytest.raises(ReaderError, match="no such file"):
+            iter_event_chunks(tmp_path / "absent.h5")
+
+    def test_empty_file(self, tmp_path):
+        path = tmp_path / "events.txt"
+        path.write_text("# only a comment\n")
+        with pytest.raises(EventFormatError, match="0 events"):
+            list(iter_event_chunks(path))
+
+
+class TestErrors:
+    def test_missing_file(self, tmp_path):
+        with pytest.raises(ReaderError, match=r"absent\.txt: no such file"):
+            load_events(tmp_path / "absent.txt")
+
+    def test_directory(self, tmp_path):
+        folder = tmp_path / "folder.npz"
+        folder.mkdir()
+        with pytest.raises(ReaderError, match="not a regular file"):
+            load_events(folder)
+
+    @pytest.mark.parametrize("name", ["events.csv", "events", "events.bag"])
+    def test_unknown_suffix(self, tmp_path, name):
+        path = tmp_path / name
+        path.write_text("0 1 2 1\n")
+        with pytest.raises(ReaderError, match="unknown event file suffix") as info:
+            load_events(path)
+        assert all(suffix in str(info.value) for suffix in SUPPORTED_SUFFIXES)
+        with pytest.raises(ReaderError, match="unknown event file suffix"):
+            read_sensor_size(path)
+
+    def test_suffix_case_is_ignored(self, tmp_path, events):
+        path = tmp_path / "EVENTS.TXT"
+        write_txt(path, events)
+        np.testing.assert_array_equal(load_events(path), events)
+
+    def test_decreasing_time_names_the_file(self, tmp_path):
+        events = make_events(30)
+        events["t"][20:] -= 10_000
+        path = tmp_path / "events.txt"
+        write_txt(path, events)
+        with pytest.raises(EventFormatError, match=r"events\.txt: timestamps decrease at event 20"):
+            load_events(path)
+
+    def test_outside_the_given_sensor(self, tmp_path, events):
+        path = tmp_path / "events.txt"
+        write_txt(path, events)
+        with pytest.raises(EventFormatError, match=r"events\.txt: x = \d+ lies outside the sensor"):
+            load_events(path, sensor_size=(HEIGHT, 10))
+        np.testing.assert_array_equal(load_events(path, sensor_size=(HEIGHT, WIDTH)), events)
+
+    def test_outside_the_stored_sensor(self, tmp_path, events):
+        path = tmp_path / "events.npz"
+        write_npz_columns(path, events)
+        np.savez(path, **{**dict(np.load(path)), "width": np.int32(10)})
+        with pytest.raises(EventFormatError, match="outside the sensor"):
+            load_events(path)
+        with pytest.raises(EventFormatError, match="outside the sensor"):
+            list(iter_event_chunks(path, 100))
+        assert len(load_events(path, sensor_size=(HEIGHT, WIDTH))) == len(events)
