@@ -1,0 +1,10 @@
+"""Multi-label graph cuts: α-expansion with Potts smoothness, label costs and an outlier label."""
+
+from evseg_torch.graphcut.alpha_expansion import (
+    ExpansionResult,
+    GraphCutError,
+    alpha_expansion,
+    labeling_energy,
+)
+
+__all__ = ["ExpansionResult", "GraphCutError", "alpha_expansion", "labeling_energy"]

@@ -1,0 +1,438 @@
+"""Multi-label α-expansion with Potts smoothness, label costs and an optional outlier label.
+
+The energy of a labelling ``f`` of ``N`` nodes with labels ``0 .. L-1`` is
+
+.. math::
+
+    E(f) = \\sum_i U_{i, f_i} + \\lambda \\sum_{(i, j)} w_{ij} [f_i \\ne f_j] + \\sum_{l \\text{ used}} h_l
+
+(data + Potts + MDL label costs, EMSGC's and Progressive-X's PEARL energy). With ``outlier_cost`` set, an
+extra label, reported as ``-1``, costs ``outlier_cost`` at every node and ``outlier_label_cost`` once if
+used.
+
+Each α-move is one s-t minimum cut on a :class:`maxflow.Graph` (PyMaxflow) built with array calls only.
+Node ``i`` on the sink side takes α, on the source side keeps ``f_i``; nodes already labelled α are not
+part of the cut (their edges become unary terms of their neighbours). A Potts edge between two nodes
+that may move is split, as in Kolmogorov and Zabih (2004), into unary terms and one submodular pair:
+
+* ``f_i == f_j``: the cost is ``w [x_i != x_j]``, an edge of capacity ``w`` both ways;
+* ``f_i != f_j``: the cost is ``w (1 - x_i x_j) = w (1 - x_j) + w (1 - x_i) x_j``, i.e. ``w`` on ``j``
+  keeping its label plus an edge ``i -> j`` of capacity ``w``.
+
+Label costs follow Delong et al. (IJCV 2012): the cut pays ``h_l`` for a label ``l != α`` in use exactly
+when some node of ``l`` keeps it, through auxiliary nodes (a root paying ``h_l`` on the source side, fed
+by every node of ``l`` through edges of capacity ``h_l``; see :func:`_add_label_costs` for the two-level
+version used here). α's own cost ``h_α [any node takes α]`` is not submodular when α is unused; it is
+handled by comparing energies, which is *exact* for the move: if the cut's best labelling moves some
+node to α it is also the best labelling among those that use α, and the other candidate, moving
+nothing, is the current labelling. So every move is the optimal expansion move.
+
+A move is accepted only if :func:`labeling_energy` strictly decreases, which also guards against
+floating-point noise in the cut. A label is skipped when no other label's move has changed the labelling
+since its own last attempt, because the optimal α-expansion of an α-expansion result is that result
+itself; the loop stops when every label would be skipped, which is how "a whole cycle changed nothing"
+shows up.
+
+Speed: the graphs number the nodes in reverse Cuthill-McKee order, computed once per call (see
+:class:`_Layout`), and are built from precomputed edge arrays with a handful of vectorised passes per
+move; the maximum flow itself (Boykov-Kolmogorov, single-threaded) takes most of the time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import maxflow
+import numpy as np
+from scipy import sparse
+from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+from evseg_torch.errors import EvsegError, ShapeError
+
+__all__ = ["ExpansionResult", "GraphCutError", "alpha_expansion", "labeling_energy"]
+
+
+class GraphCutError(EvsegError, ValueError):
+    """A graph-cut argument holds an invalid value (negative weight, NaN, label out of range)."""
+
+
+@dataclass(frozen=True)
+class ExpansionResult:
+    """Result of :func:`alpha_expansion`.
+
+    Attributes:
+        labels: int64 :math:`(N,)` labels in ``[0, L)``, or ``-1`` for the outlier label.
+        energy: :func:`labeling_energy` of ``labels``.
+        energy_history: energy of the initial labelling and after each cycle, non-increasing.
+        n_cycles: number of expansion cycles run (cycles in which at least one move was tried).
+    """
+
+    labels: np.ndarray
+    energy: float
+    energy_history: tuple[float, ...]
+    n_cycles: int
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """Validated float64 copy of an energy; the outlier label, if any, is the last column."""
+
+    unary: np.ndarray  # (N, Lp)
+    tail: np.ndarray  # (E',) intp, edges with positive weight and distinct ends only
+    head: np.ndarray  # (E',) intp
+    weight: np.ndarray  # (E',) smoothness * w
+    label_cost: np.ndarray  # (Lp,)
+    has_outlier: bool
+
+    @property
+    def n_labels(self) -> int:
+        return self.unary.shape[1]
+
+
+def _finite_scalar(value, name: str, *, nonnegative: bool) -> float:
+    array = np.asarray(value)
+    if array.ndim != 0:
+        raise ShapeError(f"{name} must be a scalar, got shape {array.shape}")
+    if not np.issubdtype(array.dtype, np.number) or np.iscomplexobj(array):
+        raise GraphCutError(f"{name} must be a real number, got {value!r}")
+    scalar = float(array)
+    if not np.isfinite(scalar):
+        raise GraphCutError(f"{name} must be finite, got {scalar}")
+    if nonnegative and scalar < 0:
+        raise GraphCutError(f"{name} must be non-negative, got {scalar}")
+    return scalar
+
+
+def _real_array(value, name: str) -> np.ndarray:
+    array = np.asarray(value)
+    if not (np.issubdtype(array.dtype, np.number) or array.dtype == np.bool_) or np.iscomplexobj(array):
+        raise GraphCutError(f"{name} must hold real numbers, got dtype {array.dtype}")
+    array = array.astype(np.float64)
+    if not np.isfinite(array).all():
+        raise GraphCutError(f"{name} must be finite (found NaN or inf)")
+    return array
+
+
+def _integer_array(value, name: str) -> np.ndarray:
+    array = np.asarray(value)
+    if array.size and not np.issubdtype(array.dtype, np.integer):
+        raise GraphCutError(f"{name} must be an integer array, got dtype {array.dtype}")
+    return array.astype(np.intp)
+
+
+def _prepare(
+    unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost
+) -> _Problem:
+    data = _real_array(unary, "unary")
+    if data.ndim != 2 or data.shape[1] == 0:
+        raise ShapeError(f"unary must have shape (N, L) with L >= 1, got {data.shape}")
+    n_nodes, n_labels = data.shape
+
+    pairs = _integer_array(edges, "edges")
+    if pairs.ndim != 2 or pairs.shape[1] != 2:
+        raise ShapeError(f"edges must have shape (E, 2), got {pairs.shape}")
+    if pairs.size and (pairs.min() < 0 or pairs.max() >= n_nodes):
+        raise GraphCutError(
+            f"edges must index nodes in [0, {n_nodes}), got values in [{pairs.min()}, {pairs.max()}]"
+        )
+    if edge_weights is None:
+        weight = np.ones(len(pairs))
+    else:
+        weight = _real_array(edge_weights, "edge_weights")
+        if weight.shape != (len(pairs),):
+            raise ShapeError(f"edge_weights must have shape ({len(pairs)},) like edges, got {weight.shape}")
+        if (weight < 0).any():
+            raise GraphCutError("edge_weights must be non-negative")
+    weight = weight * _finite_scalar(smoothness, "smoothness", nonnegative=True)
+    # Self-loops and zero weights never cost anything; dropping them keeps them out of every cut.
+    keep = (weight > 0) & (pairs[:, 0] != pairs[:, 1])
+
+    costs = _real_array(label_cost, "label_cost")
+    if costs.ndim == 0:
+        costs = np.full(n_labels, float(costs))
+    elif costs.shape != (n_labels,):
+        raise ShapeError(f"label_cost must be a scalar or have shape ({n_labels},), got {costs.shape}")
+    if (costs < 0).any():
+        raise GraphCutError("label_cost must be non-negative")
+
+    has_outlier = outlier_cost is not None
+    if has_outlier:
+        outlier = _finite_scalar(outlier_cost, "outlier_cost", nonnegative=False)
+        data = np.concatenate([data, np.full((n_nodes, 1), outlier)], axis=1)
+        costs = np.append(costs, _finite_scalar(outlier_label_cost, "outlier_label_cost", nonnegative=True))
+    return _Problem(data, pairs[keep, 0], pairs[keep, 1], weight[keep], costs, has_outlier)
+
+
+def _internal_labels(labels, problem: _Problem, name: str) -> np.ndarray:
+    """Map public labels (``-1`` = outlier) to column indices of ``problem.unary``."""
+    array = _integer_array(labels, name)
+    n_nodes = problem.unary.shape[0]
+    if array.shape != (n_nodes,):
+        raise ShapeError(f"{name} must have shape ({n_nodes},), got {array.shape}")
+    n_models = problem.n_labels - problem.has_outlier
+    low = -1 if problem.has_outlier else 0
+    if array.size and (array.min() < low or array.max() >= n_models):
+        raise GraphCutError(
+            f"{name} must lie in [{low}, {n_models}) (-1 only with outlier_cost), got "
+            f"values in [{array.min()}, {array.max()}]"
+        )
+    return np.where(array < 0, problem.n_labels - 1, array)
+
+
+def _energy(problem: _Problem, labels: np.ndarray) -> float:
+    unary = np.take_along_axis(problem.unary, labels[:, None], axis=1).sum()
+    potts = problem.weight[labels[problem.tail] != labels[problem.head]].sum()
+    used = np.bincount(labels, minlength=problem.n_labels) > 0
+    return float(unary) + float(potts) + float(problem.label_cost[used].sum())
+
+
+def labeling_energy(
+    labels,
+    unary,
+    edges,
+    edge_weights=None,
+    *,
+    smoothness=1.0,
+    label_cost=0.0,
+    outlier_cost=None,
+    outlier_label_cost=0.0,
+) -> float:
+    """Energy of a labelling: data + Potts + label costs (see the module docstring).
+
+    Args:
+        labels: integer :math:`(N,)` labels in ``[0, L)``, or ``-1`` (outlier) if ``outlier_cost`` is set.
+        unary: data costs :math:`(N, L)`.
+        edges: integer node pairs :math:`(E, 2)`, each undirected edge listed once; duplicates add up.
+        edge_weights: non-negative :math:`(E,)`; ones by default.
+        smoothness: non-negative Potts weight λ, multiplying every edge weight.
+        label_cost: non-negative scalar or :math:`(L,)`, paid once for every label in use.
+        outlier_cost: constant data cost of the outlier label at every node; ``None`` for no outlier label.
+        outlier_label_cost: label cost of the outlier label.
+
+    Returns:
+        The energy as a Python float.
+
+    Raises:
+        ShapeError: an argument has the wrong shape.
+        GraphCutError: negative weights or costs, NaN or inf, labels or node indices out of range.
+    """
+    problem = _prepare(unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost)
+    return _energy(problem, _internal_labels(labels, problem, "labels"))
+
+
+# Members per group node of the label-cost gadget (see _add_label_costs).
+_GROUP_SIZE = 32
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Node numbering and edge order of the cut graphs, chosen once per call for memory locality.
+
+    Maximum flow on a neighbourhood graph whose node ids are scattered (events sorted by time, random
+    points) is about twice as slow as on a bandwidth-reducing (reverse Cuthill-McKee) numbering with
+    the edges sorted by their first end, so the graphs use that numbering; energies keep the caller's
+    order.
+    """
+
+    node_id: np.ndarray  # (N,) graph node id of every node
+    graph_order: np.ndarray  # (N,) node of every graph id, the inverse permutation of node_id
+    tail: np.ndarray  # (E',) caller's node indices, edges in graph order, graph_tail < graph_head
+    head: np.ndarray
+    graph_tail: np.ndarray  # (E',) uint32 graph node ids, as PyMaxflow stores them
+    graph_head: np.ndarray
+    weight: np.ndarray
+
+
+def _layout(problem: _Problem) -> _Layout:
+    n_nodes = problem.unary.shape[0]
+    graph_order = np.arange(n_nodes)
+    if len(problem.tail):
+        ends = np.concatenate([problem.tail, problem.head])
+        adjacency = sparse.csr_array(
+            (np.ones(len(ends), dtype=np.int32), (ends, np.roll(ends, len(problem.tail)))),
+            shape=(n_nodes, n_nodes),
+        )
+        graph_order = reverse_cuthill_mckee(adjacency, symmetric_mode=True).astype(np.intp)
+    node_id = np.empty(n_nodes, dtype=np.intp)
+    node_id[graph_order] = np.arange(n_nodes)
+    first = node_id[problem.tail] < node_id[problem.head]
+    tail = np.where(first, problem.tail, problem.head)
+    head = np.where(first, problem.head, problem.tail)
+    order = np.argsort(node_id[tail], kind="stable")
+    tail, head = tail[order], head[order]
+    return _Layout(
+        node_id,
+        graph_order,
+        tail,
+        head,
+        node_id[tail].astype(np.uint32),
+        node_id[head].astype(np.uint32),
+        problem.weight[order],
+    )
+
+
+def _add_label_costs(graph, label_cost, member_label, members, n_groups) -> None:
+    """Delong et al.'s label-cost gadget for every label with ``n_groups > 0``, on a two-level tree.
+
+    Label ``l`` gets a root node paying ``h_l`` on the source side; its ``members`` (graph ids, sorted)
+    are split into runs of ``_GROUP_SIZE`` consecutive ids, each run feeding one group node by edges of
+    capacity ``h_l``, and each group node feeds the root by an edge of capacity ``h_l``. The cut pays
+    ``h_l`` exactly when some member keeps ``l``, as with a single hub node, but the maximum flow does
+    not have to scan one node with thousands of arcs (about 1.5 times faster on 30k nodes).
+    """
+    labelled = np.flatnonzero(n_groups)
+    label_cost = label_cost[labelled]
+    roots = graph.add_nodes(len(labelled))
+    graph.add_grid_tedges(roots, np.zeros(len(labelled)), label_cost)
+    group_of_label = np.repeat(np.arange(len(labelled)), n_groups[labelled])
+    groups = graph.add_nodes(len(group_of_label))
+    graph.add_edges(groups, roots[group_of_label], label_cost[group_of_label], np.zeros(len(groups)))
+
+    slot = np.zeros(len(n_groups), dtype=np.intp)
+    slot[labelled] = np.arange(len(labelled))
+    member_slot = slot[member_label]
+    by_label = np.argsort(member_slot, kind="stable")
+    member_slot = member_slot[by_label]
+    counts = np.bincount(member_slot, minlength=len(labelled))
+    rank = np.arange(len(members)) - np.repeat(np.cumsum(counts) - counts, counts)
+    first_group = np.cumsum(n_groups[labelled]) - n_groups[labelled]
+    graph.add_edges(
+        members[by_label],
+        groups[first_group[member_slot] + rank // _GROUP_SIZE],
+        label_cost[member_slot],
+        np.zeros(len(members)),
+    )
+
+
+def _expand(problem: _Problem, layout: _Layout, labels: np.ndarray, alpha: int) -> np.ndarray:
+    """Best α-expansion of ``labels`` ignoring α's label cost, by one minimum cut (new array)."""
+    movable = np.flatnonzero(labels != alpha)
+    if not len(movable):
+        return labels.copy()
+    n_nodes = len(labels)
+    tail_label = labels[layout.tail]
+    head_label = labels[layout.head]
+    head_movable = head_label != alpha
+    differ = tail_label != head_label
+    pair = np.flatnonzero((tail_label != alpha) & head_movable)
+
+    # Cost of keeping the current label (paid on the source side): the data cost, Potts edges to
+    # α-nodes and the "w on head keeping" part of pairs whose ends differ. An edge whose head is α
+    # charges its tail; edges between two α-nodes have equal ends and charge nothing.
+    keep_cost = np.take_along_axis(problem.unary, labels[:, None], axis=1)[:, 0]
+    keep_cost += np.bincount(
+        np.where(head_movable, layout.head, layout.tail), weights=layout.weight * differ, minlength=n_nodes
+    )
+
+    counts = np.bincount(labels, minlength=problem.n_labels)
+    charged = (counts > 0) & (problem.label_cost > 0)
+    charged[alpha] = False
+    members = np.flatnonzero(charged[labels[layout.graph_order]])
+    n_groups = -(-counts // _GROUP_SIZE) * charged
+    n_charged = int(np.count_nonzero(charged))
+    n_aux = n_charged + int(n_groups.sum())
+
+    graph = maxflow.Graph[float](n_nodes + n_aux, len(pair) + len(members) + n_aux)
+    graph.add_nodes(n_nodes)
+    pair_weight = layout.weight.take(pair)
+    graph.add_edges(
+        layout.graph_tail.take(pair),
+        layout.graph_head.take(pair),
+        pair_weight,
+        np.where(differ.take(pair), 0.0, pair_weight),
+    )
+    moving = layout.node_id.take(movable)
+    graph.add_grid_tedges(moving, problem.unary[movable, alpha], keep_cost.take(movable))
+    if n_charged:
+        _add_label_costs(graph, problem.label_cost, labels[layout.graph_order[members]], members, n_groups)
+    graph.maxflow()
+
+    expanded = labels.copy()
+    expanded[movable[graph.get_grid_segments(moving)]] = alpha
+    return expanded
+
+
+def alpha_expansion(
+    unary,
+    edges,
+    edge_weights=None,
+    *,
+    smoothness=1.0,
+    label_cost=0.0,
+    init_labels=None,
+    max_cycles=2,
+    outlier_cost=None,
+    outlier_label_cost=0.0,
+    rng=None,
+) -> ExpansionResult:
+    """Minimise data + Potts + label-cost energy by α-expansion (Boykov et al. 2001, Delong et al. 2012).
+
+    Each cycle tries one α-expansion move per label (the outlier label last, or all in random order
+    when ``rng`` is given); each move is the exact optimal expansion move and is kept only if it lowers
+    :func:`labeling_energy`. At a converged labelling with non-negative data costs the energy is at most
+    ``2 E_opt + sum(label costs)``.
+
+    Args:
+        unary: data costs :math:`(N, L)`, any real dtype; computed in float64.
+        edges: integer node pairs :math:`(E, 2)`, each undirected edge listed once; duplicates add up.
+        edge_weights: non-negative :math:`(E,)`; ones by default.
+        smoothness: non-negative Potts weight λ: an edge costs ``smoothness * w_e`` if its ends differ.
+        label_cost: non-negative scalar or :math:`(L,)`, paid once for every label in use (MDL).
+        init_labels: initial integer labels :math:`(N,)` in ``[0, L)`` or ``-1`` (outlier); by default
+            the per-node minimum of ``unary`` (outlier column included).
+        max_cycles: maximum number of expansion cycles; the loop stops earlier once a whole cycle
+            changes nothing.
+        outlier_cost: constant data cost of an extra outlier label, returned as ``-1``; ``None``
+            for no outlier label.
+        outlier_label_cost: label cost of the outlier label.
+        rng: ``None`` for the fixed label order, else a :class:`numpy.random.Generator` or seed for a
+            random order in every cycle.
+
+    Returns:
+        :class:`ExpansionResult` with the labels, their energy, the energy history and the cycle count.
+
+    Raises:
+        ShapeError: an argument has the wrong shape.
+        GraphCutError: negative weights or costs, NaN or inf, labels or node indices out of range.
+
+    Example:
+        >>> unary = np.array([[0.0, 2.0], [2.0, 0.0], [0.0, 2.0]])
+        >>> alpha_expansion(unary, np.array([[0, 1], [1, 2]]), smoothness=3.0).labels
+        array([0, 0, 0])
+    """
+    problem = _prepare(unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost)
+    if isinstance(max_cycles, bool) or not isinstance(max_cycles, int | np.integer) or max_cycles < 0:
+        raise GraphCutError(f"max_cycles must be a non-negative integer, got {max_cycles!r}")
+    if init_labels is None:
+        labels = np.argmin(problem.unary, axis=1)
+    else:
+        labels = _internal_labels(init_labels, problem, "init_labels")
+    generator = None if rng is None else np.random.default_rng(rng)
+    layout = _layout(problem)
+
+    energy = _energy(problem, labels)
+    history = [energy]
+    # Moves and changes are numbered (the initial labelling is change 1); a label needs a new attempt only
+    # if the labelling changed after its last attempt.
+    last_attempt = np.zeros(problem.n_labels, dtype=np.int64)
+    last_change = 1 if len(labels) else 0
+    move = 1
+    n_cycles = 0
+    while n_cycles < max_cycles and (last_attempt < last_change).any():
+        order = np.arange(problem.n_labels) if generator is None else generator.permutation(problem.n_labels)
+        for alpha in order:
+            if last_attempt[alpha] >= last_change:
+                continue
+            move += 1
+            last_attempt[alpha] = move
+            candidate = _expand(problem, layout, labels, int(alpha))
+            if np.array_equal(candidate, labels):
+                continue
+            candidate_energy = _energy(problem, candidate)
+            if candidate_energy < energy:
+                labels, energy, last_change = candidate, candidate_energy, move
+        n_cycles += 1
+        history.append(energy)
+
+    public = np.where(labels == problem.n_labels - 1, -1, labels) if problem.has_outlier else labels
+    return ExpansionResult(public.astype(np.int64), energy, tuple(history), n_cycles)

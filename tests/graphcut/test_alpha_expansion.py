@@ -1,0 +1,357 @@
+import importlib
+import itertools
+
+import numpy as np
+import pytest
+
+from evseg_torch.errors import EvsegError, ShapeError
+from evseg_torch.graphcut import ExpansionResult, GraphCutError, alpha_expansion, labeling_energy
+from evseg_torch.graphcut.alpha_expansion import _expand, _layout, _prepare
+
+# The package re-exports the function under the module's name, so fetch the module itself.
+alpha_expansion_module = importlib.import_module("evseg_torch.graphcut.alpha_expansion")
+
+
+def _random_problem(rng, n_nodes, n_labels, n_edges):
+    unary = rng.uniform(0.0, 3.0, size=(n_nodes, n_labels))
+    edges = rng.integers(0, n_nodes, size=(n_edges, 2))
+    weights = rng.uniform(0.0, 2.0, size=n_edges)
+    return unary, edges, weights
+
+
+def _all_energies(labelings, unary, edges, weights, smoothness, label_cost, outlier_cost, outlier_label_cost):
+    """Energies of every row of ``labelings`` (K, N) by brute force, outlier = last column."""
+    costs = np.broadcast_to(np.asarray(label_cost, dtype=float), unary.shape[1:])
+    if outlier_cost is not None:
+        unary = np.column_stack([unary, np.full(len(unary), outlier_cost)])
+        costs = np.append(costs, outlier_label_cost)
+    data = unary[np.arange(unary.shape[0]), labelings].sum(axis=1)
+    potts = smoothness * (labelings[:, edges[:, 0]] != labelings[:, edges[:, 1]]) @ weights
+    used = np.stack([(labelings == label).any(axis=1) for label in range(unary.shape[1])], axis=1)
+    return data + potts + used @ costs
+
+
+def _exhaustive_optimum(n_labels, *args):
+    labelings = np.array(list(itertools.product(range(n_labels), repeat=args[0].shape[0])))
+    return _all_energies(labelings, *args).min()
+
+
+def _knn_edges(points, k):
+    distance = np.linalg.norm(points[:, None] - points[None], axis=2)
+    neighbours = np.argsort(distance, axis=1)[:, 1 : k + 1]
+    edges = np.sort(np.stack([np.repeat(np.arange(len(points)), k), neighbours.ravel()], axis=1), axis=1)
+    return np.unique(edges, axis=0)
+
+
+class TestLabelingEnergy:
+    def test_by_hand(self):
+        unary = np.array([[1.0, 4.0], [2.0, 0.5], [3.0, 1.0]])
+        edges = np.array([[0, 1], [1, 2], [0, 2], [0, 1]])
+        weights = np.array([1.0, 2.0, 0.5, 1.0])
+        labels = np.array([0, 1, 1])
+        # data 1 + 0.5 + 1; Potts 2 * (1 + 0.5 + 1) over edges (0,1), (0,2), duplicated (0,1); labels 3 + 5.
+        energy = labeling_energy(labels, unary, edges, weights, smoothness=2.0, label_cost=[3.0, 5.0])
+        assert energy == pytest.approx(2.5 + 5.0 + 8.0)
+
+    def test_outlier_label(self):
+        unary = np.array([[1.0, 4.0], [2.0, 0.5], [3.0, 1.0]])
+        edges = np.array([[0, 1], [1, 2]])
+        energy = labeling_energy(
+            np.array([-1, 1, -1]), unary, edges, label_cost=1.0, outlier_cost=0.25, outlier_label_cost=7.0
+        )
+        assert energy == pytest.approx(0.25 + 0.5 + 0.25 + 2.0 + 1.0 + 7.0)
+
+    def test_matches_brute_force_formula(self):
+        rng = np.random.default_rng(3)
+        unary, edges, weights = _random_problem(rng, 6, 3, 10)
+        labels = rng.integers(-1, 3, size=(20, 6))
+        expected = _all_energies(
+            np.where(labels < 0, 3, labels), unary, edges, weights, 1.5, [0.5, 1, 2], 0.7, 4
+        )
+        energies = [
+            labeling_energy(
+                row,
+                unary,
+                edges,
+                weights,
+                smoothness=1.5,
+                label_cost=[0.5, 1, 2],
+                outlier_cost=0.7,
+                outlier_label_cost=4,
+            )
+            for row in labels
+        ]
+        np.testing.assert_allclose(energies, expected)
+
+
+class TestExpansionMove:
+    @pytest.mark.parametrize("group_size", [32, 2])
+    @pytest.mark.parametrize("seed", range(12))
+    def test_each_move_is_the_optimal_expansion(self, seed, group_size, monkeypatch):
+        """The kept move (cut result or current labelling) is the best of all 2^n expansion moves.
+
+        A group size of 2 splits every label-cost gadget into several group nodes.
+        """
+        monkeypatch.setattr(alpha_expansion_module, "_GROUP_SIZE", group_size)
+        rng = np.random.default_rng(seed)
+        n_nodes, n_labels = 7, 3
+        unary, edges, weights = _random_problem(rng, n_nodes, n_labels, 12)
+        unary -= 2.0 * (seed % 4 == 1)  # negative data costs are allowed
+        label_cost = rng.uniform(0.0, 3.0, size=n_labels) * (seed % 3 != 0)
+        outlier = (1.5 - 3.0 * (seed % 4 == 1), 2.0) if seed % 2 else (None, 0.0)
+        args = (unary, edges, weights, 1.3, label_cost, *outlier)
+        problem = _prepare(*args)
+        layout = _layout(problem)
+        start = rng.integers(0, problem.n_labels, size=n_nodes)
+        for alpha, unused in itertools.product(range(problem.n_labels), [False, True]):
+            # With α unused, its label cost is paid only if the move is taken.
+            labels = np.where(start == alpha, (alpha + 1) % problem.n_labels, start) if unused else start
+            movable = np.flatnonzero(labels != alpha)
+            masks = np.array(list(itertools.product([False, True], repeat=len(movable))), dtype=bool)
+            moves = np.tile(labels, (len(masks), 1))
+            moves[:, movable] = np.where(masks, alpha, labels[movable])
+            best = _all_energies(moves, *args).min()
+            candidate = _expand(problem, layout, labels, alpha)
+            assert (candidate[candidate != labels] == alpha).all()
+            kept = min(_all_energies(candidate[None], *args)[0], _all_energies(labels[None], *args)[0])
+            assert kept == pytest.approx(best, abs=1e-9)
+
+
+class TestAlphaExpansion:
+    def test_result_type_and_history(self):
+        rng = np.random.default_rng(0)
+        points = rng.uniform(0, 10, size=(300, 2))
+        edges = _knn_edges(points, 6)
+        unary = rng.uniform(0, 1, size=(300, 4))
+        unary[np.arange(300), (points[:, 0] > 5) + 2 * (points[:, 1] > 5)] -= 0.4
+        kwargs = dict(smoothness=0.4, label_cost=5.0, outlier_cost=0.9, outlier_label_cost=3.0)
+        result = alpha_expansion(unary, edges, max_cycles=10, rng=1, **kwargs)
+        assert isinstance(result, ExpansionResult)
+        assert result.labels.dtype == np.int64 and result.labels.shape == (300,)
+        assert len(result.energy_history) == result.n_cycles + 1
+        assert np.all(np.diff(result.energy_history) <= 0)
+        assert result.energy == result.energy_history[-1]
+        assert result.energy == labeling_energy(result.labels, unary, edges, **kwargs)
+        assert result.energy_history[0] == labeling_energy(np.argmin(unary, axis=1), unary, edges, **kwargs)
+        assert result.energy < result.energy_history[0]
+
+    @pytest.mark.parametrize("seed", range(15))
+    def test_within_expansion_bound_of_exhaustive_optimum(self, seed):
+        """Converged α-expansion with non-negative data costs satisfies E <= 2 E_opt + sum of label costs.
+
+        (Summing the optimality of each expansion move towards the optimum's regions gives
+        data + Potts <= E_data(opt) + 2 E_Potts(opt) + label costs of the optimum, and the labels that
+        the result uses cost at most the sum of all label costs.)
+        """
+        rng = np.random.default_rng(seed)
+        n_nodes, n_labels = int(rng.integers(4, 9)), int(rng.integers(2, 4))
+        unary, edges, weights = _random_problem(rng, n_nodes, n_labels, 2 * n_nodes)
+        label_cost = rng.uniform(0.0, 2.0, size=n_labels) * (seed % 2)
+        smoothness = float(rng.uniform(0.2, 2.0))
+        result = alpha_expansion(
+            unary, edges, weights, smoothness=smoothness, label_cost=label_cost, max_cycles=50
+        )
+        optimum = _exhaustive_optimum(n_labels, unary, edges, weights, smoothness, label_cost, None, 0.0)
+        assert result.energy >= optimum - 1e-9
+        assert result.energy <= 2 * optimum + label_cost.sum() + 1e-9
+        if not label_cost.any():
+            assert result.energy <= 2 * optimum + 1e-9
+
+    def test_potts_two_labels_is_exact(self):
+        """With two labels and no label costs one expansion move is a full binary graph cut: optimal."""
+        rng = np.random.default_rng(5)
+        unary, edges, weights = _random_problem(rng, 8, 2, 16)
+        result = alpha_expansion(unary, edges, weights, smoothness=0.8, max_cycles=5)
+        optimum = _exhaustive_optimum(2, unary, edges, weights, 0.8, 0.0, None, 0.0)
+        assert result.energy == pytest.approx(optimum)
+
+    def test_label_cost_removes_duplicate_label(self):
+        rng = np.random.default_rng(1)
+        column = rng.uniform(0, 1, size=50)
+        unary = np.column_stack([column, column, column + 0.5])
+        edges = np.stack([np.arange(49), np.arange(1, 50)], axis=1)
+        init = rng.integers(0, 2, size=50)
+        without = alpha_expansion(unary, edges, smoothness=0.0, init_labels=init)
+        assert set(without.labels) == {0, 1}
+        result = alpha_expansion(unary, edges, smoothness=0.0, label_cost=1.0, init_labels=init)
+        assert len(set(result.labels)) == 1 and result.labels[0] in (0, 1)
+
+    def test_duplicated_models_collapse(self):
+        """Three models for two motions (one of them duplicated with noise) end up as two labels."""
+        rng = np.random.default_rng(2)
+        points = rng.uniform(0, 10, size=(200, 2))
+        truth = (points[:, 0] > 5).astype(int)
+        residual_a = np.where(truth == 0, 0.1, 1.0) + rng.uniform(0, 0.2, size=200)
+        residual_b = np.where(truth == 1, 0.1, 1.0) + rng.uniform(0, 0.2, size=200)
+        residual_b2 = residual_b + rng.normal(0, 0.05, size=200)
+        unary = np.column_stack([residual_a, residual_b, residual_b2])
+        edges = _knn_edges(points, 5)
+        init = np.argmin(unary, axis=1)
+        assert len(set(init)) == 3
+        result = alpha_expansion(unary, edges, smoothness=0.1, label_cost=10.0, max_cycles=5)
+        assert len(set(result.labels)) == 2
+        merged = np.where(result.labels == 2, 1, result.labels)
+        assert (merged == truth).mean() > 0.95
+
+    def test_outlier_label(self):
+        rng = np.random.default_rng(4)
+        truth = rng.integers(0, 2, size=60)
+        unary = np.where(np.arange(2) == truth[:, None], 0.1, 1.0)
+        gross = rng.choice(60, size=10, replace=False)
+        unary[gross] = 5.0
+        edges = np.empty((0, 2), dtype=int)
+        result = alpha_expansion(unary, edges, label_cost=1.0, outlier_cost=2.0, outlier_label_cost=1.0)
+        expected = truth.copy()
+        expected[gross] = -1
+        np.testing.assert_array_equal(result.labels, expected)
+        plain = alpha_expansion(unary, edges, label_cost=1.0)
+        assert (plain.labels >= 0).all()
+
+    def test_outlier_init_labels(self):
+        unary = np.array([[0.0, 1.0], [1.0, 0.0], [9.0, 9.0]])
+        result = alpha_expansion(
+            unary, np.array([[0, 1]]), init_labels=[-1, -1, -1], outlier_cost=3.0, smoothness=0.5
+        )
+        assert result.energy_history[0] == pytest.approx(9.0)
+        np.testing.assert_array_equal(result.labels, [0, 1, -1])
+
+    def test_smoothness_makes_chain_piecewise_constant(self):
+        rng = np.random.default_rng(6)
+        truth = np.repeat([0, 2, 1, 0], 50)
+        unary = rng.uniform(0, 1, size=(200, 3))
+        unary[np.arange(200), truth] -= 0.35
+        edges = np.stack([np.arange(199), np.arange(1, 200)], axis=1)
+        noisy = alpha_expansion(unary, edges, smoothness=0.0)
+        assert np.count_nonzero(np.diff(noisy.labels)) > 20
+        smooth = alpha_expansion(unary, edges, smoothness=1.5, max_cycles=5)
+        assert np.count_nonzero(np.diff(smooth.labels)) == 3
+        assert (smooth.labels == truth).mean() > 0.95
+
+    def test_smoothness_denoises_grid(self):
+        rng = np.random.default_rng(7)
+        height, width = 30, 40
+        truth = np.zeros((height, width), dtype=int)
+        truth[5:20, 8:25] = 1
+        truth[:, 30:] = 2
+        unary = rng.uniform(0, 1, size=(height * width, 3))
+        unary[np.arange(height * width), truth.ravel()] -= 0.3
+        index = np.arange(height * width).reshape(height, width)
+        edges = np.concatenate(
+            [
+                np.stack([index[:, :-1].ravel(), index[:, 1:].ravel()], axis=1),
+                np.stack([index[:-1].ravel(), index[1:].ravel()], axis=1),
+            ]
+        )
+        noisy = alpha_expansion(unary, edges, smoothness=0.0)
+        result = alpha_expansion(unary, edges, smoothness=0.6, max_cycles=5, rng=0)
+        assert (noisy.labels == truth.ravel()).mean() < 0.8
+        assert (result.labels == truth.ravel()).mean() > 0.98
+        assert np.all(np.diff(result.energy_history) <= 0)
+
+    def test_init_labels_respected(self):
+        unary = np.array([[0.0, 1.0], [1.0, 0.0]])
+        edges = np.array([[0, 1]])
+        init = np.array([1, 1])
+        frozen = alpha_expansion(unary, edges, init_labels=init, max_cycles=0)
+        np.testing.assert_array_equal(frozen.labels, init)
+        assert frozen.n_cycles == 0 and frozen.energy_history == (frozen.energy,)
+        # All-0 and all-1 tie under strong smoothness; the start decides, since ties are never accepted.
+        kept = alpha_expansion(unary, edges, smoothness=5.0, init_labels=init, max_cycles=5)
+        np.testing.assert_array_equal(kept.labels, [1, 1])
+        assert kept.energy_history[0] == pytest.approx(1.0)
+        default = alpha_expansion(unary, edges, smoothness=5.0, max_cycles=5)
+        assert default.energy_history[0] == pytest.approx(5.0)
+        np.testing.assert_array_equal(default.labels, [0, 0])
+
+    def test_stops_when_a_cycle_changes_nothing(self):
+        unary = np.array([[0.0, 1.0], [1.0, 0.0]])
+        result = alpha_expansion(unary, np.array([[0, 1]]), smoothness=0.1, max_cycles=10)
+        assert result.n_cycles == 1
+        np.testing.assert_array_equal(result.labels, [0, 1])
+
+    def test_random_order_is_reproducible(self):
+        rng = np.random.default_rng(8)
+        unary, edges, weights = _random_problem(rng, 100, 4, 300)
+        first = alpha_expansion(unary, edges, weights, label_cost=1.0, rng=3, max_cycles=4)
+        second = alpha_expansion(
+            unary, edges, weights, label_cost=1.0, rng=np.random.default_rng(3), max_cycles=4
+        )
+        np.testing.assert_array_equal(first.labels, second.labels)
+        assert first.energy_history == second.energy_history
+
+    def test_does_not_modify_inputs(self):
+        rng = np.random.default_rng(9)
+        unary, edges, weights = _random_problem(rng, 40, 3, 80)
+        label_cost = np.array([1.0, 2.0, 3.0])
+        init = rng.integers(-1, 3, size=40)
+        copies = [array.copy() for array in (unary, edges, weights, label_cost, init)]
+        alpha_expansion(
+            unary, edges, weights, label_cost=label_cost, init_labels=init, outlier_cost=1.0, max_cycles=3
+        )
+        labeling_energy(init, unary, edges, weights, label_cost=label_cost, outlier_cost=1.0)
+        for original, copy in zip((unary, edges, weights, label_cost, init), copies, strict=True):
+            np.testing.assert_array_equal(original, copy)
+
+    def test_degenerate_sizes(self):
+        empty = alpha_expansion(np.zeros((0, 3)), np.empty((0, 2), dtype=int))
+        assert empty.labels.shape == (0,) and empty.energy == 0.0
+        single = alpha_expansion(np.array([[2.0], [1.0]]), np.array([[0, 1], [1, 1]]), label_cost=0.5)
+        np.testing.assert_array_equal(single.labels, [0, 0])
+        assert single.energy == pytest.approx(3.5)
+        integer = alpha_expansion(np.array([[2, 0], [0, 2]]), np.array([[0, 1]]), smoothness=3)
+        assert integer.energy == pytest.approx(2.0)
+
+
+class TestValidation:
+    UNARY = np.zeros((3, 2))
+    EDGES = np.array([[0, 1], [1, 2]])
+
+    @pytest.mark.parametrize(
+        ("kwargs", "error", "match"),
+        [
+            (dict(unary=np.zeros(3)), ShapeError, "unary must have shape"),
+            (dict(unary=np.zeros((3, 0))), ShapeError, "unary must have shape"),
+            (dict(unary=np.array([[0.0, np.nan]] * 3)), GraphCutError, "unary must be finite"),
+            (dict(unary=np.full((3, 2), "a")), GraphCutError, "unary must hold real numbers"),
+            (dict(edges=np.array([0, 1])), ShapeError, "edges must have shape"),
+            (dict(edges=np.array([[0.0, 1.0]])), GraphCutError, "edges must be an integer array"),
+            (dict(edges=np.array([[0, 3]])), GraphCutError, r"edges must index nodes in \[0, 3\)"),
+            (dict(edges=np.array([[-1, 0]])), GraphCutError, "edges must index nodes"),
+            (dict(edge_weights=np.ones(3)), ShapeError, "edge_weights must have shape"),
+            (dict(edge_weights=np.array([1.0, -1.0])), GraphCutError, "edge_weights must be non-negative"),
+            (dict(edge_weights=np.array([1.0, np.nan])), GraphCutError, "edge_weights must be finite"),
+            (dict(smoothness=-1.0), GraphCutError, "smoothness must be non-negative"),
+            (dict(smoothness=np.ones(2)), ShapeError, "smoothness must be a scalar"),
+            (dict(label_cost=-1.0), GraphCutError, "label_cost must be non-negative"),
+            (dict(label_cost=np.ones(3)), ShapeError, "label_cost must be a scalar or have shape"),
+            (dict(label_cost=np.inf), GraphCutError, "label_cost must be finite"),
+            (dict(outlier_cost=np.nan), GraphCutError, "outlier_cost must be finite"),
+            (
+                dict(outlier_cost=1.0, outlier_label_cost=-2.0),
+                GraphCutError,
+                "outlier_label_cost must be non",
+            ),
+            (dict(init_labels=[0, 1]), ShapeError, r"init_labels must have shape \(3,\)"),
+            (dict(init_labels=[0, 2, 1]), GraphCutError, r"init_labels must lie in \[0, 2\)"),
+            (dict(init_labels=[0, -1, 1]), GraphCutError, "-1 only with outlier_cost"),
+            (
+                dict(init_labels=[0, -2, 1], outlier_cost=1.0),
+                GraphCutError,
+                r"init_labels must lie in \[-1, 2\)",
+            ),
+            (dict(init_labels=[0.0, 1.0, 1.0]), GraphCutError, "init_labels must be an integer array"),
+            (dict(max_cycles=-1), GraphCutError, "max_cycles must be a non-negative integer"),
+            (dict(max_cycles=1.5), GraphCutError, "max_cycles must be a non-negative integer"),
+        ],
+    )
+    def test_invalid_inputs(self, kwargs, error, match):
+        arguments = dict(unary=self.UNARY, edges=self.EDGES) | kwargs
+        with pytest.raises(error, match=match) as info:
+            alpha_expansion(**arguments)
+        assert isinstance(info.value, EvsegError) and isinstance(info.value, ValueError)
+
+    def test_labeling_energy_validates_labels(self):
+        with pytest.raises(GraphCutError, match=r"labels must lie in \[0, 2\)"):
+            labeling_energy([0, 5, 1], self.UNARY, self.EDGES)
+        with pytest.raises(ShapeError, match=r"labels must have shape \(3,\)"):
+            labeling_energy([[0, 1, 1]], self.UNARY, self.EDGES)
