@@ -1,0 +1,410 @@
+"""GC-RANSAC: the hypothesis-proposal engine of level one (Barath and Matas, CVPR 2018).
+
+A single-model robust fit of feature correspondences ``src -> dst`` (time gaps ``dt``) to a motion
+model of :mod:`evseg_torch.motion`, as in the paper's Sec. IV-A and Algorithm 1:
+
+* **NAPSAC sampling** on the neighbourhood graph: a centre drawn uniformly, the other ``m - 1`` points
+  of the minimal sample drawn from its neighbours;
+* **truncated MSAC quality** with the truncated threshold ``1.5 * threshold`` (pitfall 9): a point with
+  squared residual ``r2 < (1.5 tau)^2`` contributes its *preference* ``1 - r2 / (1.5 tau)^2``;
+* the **compound-model-aware quality** used inside Progressive-X: ``Q = S - (sum_i min(pref_i(C),
+  pref_i(h))) ** scoring_exponent``, so a proposal scores only the data that the instances found so
+  far (the compound model ``C``) do not explain. This is Progressive-X's code; the paper's Eq. 4
+  states the same idea per point, ``sum_i min(pref_i(h), 1 - pref_i(C))``, while the power here
+  rejects overlapping proposals harder;
+* the adaptive iteration count ``K = log(1 - conf) / log(1 - eta^m)``, clipped to ``[min_iters,
+  max_iters]``, ``eta`` the best model's inlier ratio;
+* **local optimisation** whenever a new best model appears: graph-cut inlier/outlier labelling (one
+  s-t minimum cut, :func:`graph_cut_inliers`) followed by least-squares refits on all labelled
+  inliers and on random subsets of them, repeated while the quality improves;
+* a final iteratively re-weighted least-squares polish.
+
+Hypotheses are generated and scored in batches, all residuals of a batch in one matrix product:
+every model here is a linear velocity field, ``dst - src = dt J(src) theta``, so the residuals of K
+hypotheses are ``b - A @ params.T`` with ``A = dt J(src)`` stacked once per call.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import maxflow
+import numpy as np
+
+from evseg_torch.errors import ConfigError, ModelError, ShapeError
+from evseg_torch.level_one.neighborhood import adjacency, neighborhood_graph
+from evseg_torch.motion.base import MotionModel
+
+__all__ = ["gc_ransac", "graph_cut_inliers", "iteration_bound", "preference"]
+
+#: Hypotheses generated and scored per vectorised step.
+BATCH_SIZE = 128
+#: Graph-cut + refit rounds per local optimisation (GC-RANSAC's ``max_graph_cut_number``).
+MAX_GRAPH_CUT_NUMBER = 10
+#: Random inlier subsets refitted per round (GC-RANSAC's ``max_local_optimization_number``).
+MAX_LOCAL_OPTIMIZATION_NUMBER = 10
+#: Rounds of the final iteratively re-weighted least squares.
+MAX_LEAST_SQUARES_ITERATIONS = 10
+
+
+def preference(sq_residuals, threshold: float) -> np.ndarray:
+    """Truncated-quadratic preference ``max(0, 1 - r^2 / (1.5 threshold)^2)`` of points for models.
+
+    It is each point's MSAC score for a model, Progressive-X's preference vector entry, and positive
+    exactly for the inliers at the truncated threshold ``1.5 * threshold``.
+
+    Args:
+        sq_residuals: squared transfer errors in px^2, any shape.
+        threshold: inlier threshold ``tau`` in pixels.
+
+    Returns:
+        Preferences in ``[0, 1]``, same shape.
+    """
+    return np.clip(1.0 - np.asarray(sq_residuals) / (1.5 * threshold) ** 2, 0.0, None)
+
+
+def iteration_bound(inlier_ratio: float, sample_size: int, conf: float) -> float:
+    """RANSAC's iteration count ``log(1 - conf) / log(1 - eta^m)`` for confidence ``conf``.
+
+    Returns ``inf`` when ``eta^m`` underflows (no inliers) and ``0`` when every point is an inlier.
+    """
+    hit = float(inlier_ratio) ** sample_size
+    if hit >= 1.0:
+        return 0.0
+    miss = np.log1p(-hit)
+    return float(np.log1p(-conf) / miss) if miss < 0 else float("inf")
+
+
+def graph_cut_inliers(
+    sq_residuals, edges, *, threshold: float, spatial_coherence_weight: float
+) -> np.ndarray:
+    """Spatially coherent inlier/outlier labelling of one model by an s-t minimum cut (GC-RANSAC).
+
+    With ``d_i = r_i^2 / (1.5 tau)^2`` and ``w`` the spatial coherence weight, a point inside the
+    truncated threshold (``d_i < 1``) pays ``(1 - w)(1 - d_i)`` for being labelled an outlier, one
+    outside pays ``(1 - w) d_i`` for being labelled an inlier; every neighbour pair pays ``w`` if
+    labelled differently and ``w (min(d_i, 1) + min(d_j, 1)) / 2`` if both are outliers (GC-RANSAC's
+    energy). The pair term is submodular, so one minimum cut gives the exact optimum. With ``w = 0``
+    this is plain thresholding at ``1.5 tau``.
+
+    Args:
+        sq_residuals: squared residuals of the points under the model, :math:`(N,)`.
+        edges: neighbourhood graph :math:`(E, 2)`, each pair once.
+        threshold: inlier threshold ``tau`` in pixels.
+        spatial_coherence_weight: ``w`` in ``[0, 1]``.
+
+    Returns:
+        Boolean inlier mask :math:`(N,)`.
+    """
+    ratio = np.asarray(sq_residuals, dtype=np.float64) / (1.5 * threshold) ** 2
+    distance = np.minimum(ratio, 1.0)
+    n_points = ratio.shape[0]
+    weight = float(spatial_coherence_weight)
+    # Linear cost of labelling a point inlier rather than outlier; the pair terms are rewritten as
+    # E(x_i, x_j) = E00 + (E10 - E00) x_i + (E11 - E10) x_j + (E01 + E10 - E00 - E11)(1 - x_i) x_j.
+    linear = (1.0 - weight) * np.where(ratio < 1.0, ratio - 1.0, ratio)
+    tail, head = edges[:, 0], edges[:, 1]
+    both_out = 0.5 * weight * (distance[tail] + distance[head])
+    linear += np.bincount(tail, weights=weight - both_out, minlength=n_points)
+    linear -= np.bincount(head, minlength=n_points) * weight
+    graph = maxflow.Graph[float](n_points, len(edges))
+    nodes = graph.add_nodes(n_points)
+    graph.add_edges(tail, head, 2.0 * weight - both_out, np.zeros(len(edges)))
+    # Sink side = inlier: the source edge is cut (paid) by inliers, the sink edge by outliers.
+    graph.add_grid_tedges(nodes, np.clip(linear, 0.0, None), np.clip(-linear, 0.0, None))
+    graph.maxflow()
+    return graph.get_grid_segments(nodes)
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """Validated correspondences with what every hypothesis test reuses.
+
+    Attributes:
+        model: the motion model.
+        src, dst: :math:`(N, 2)` float64; dt: :math:`(N,)` float64.
+        design: ``dt J(src)`` stacked to :math:`(2N, P)`; target: ``dst - src`` flattened, :math:`(2N,)`.
+        edges: neighbourhood graph :math:`(E, 2)`.
+        neighbors: :math:`(N, D)` neighbour indices padded with ``-1``, ``D`` the largest degree.
+        degree: :math:`(N,)` number of neighbours.
+    """
+
+    model: MotionModel
+    src: np.ndarray
+    dst: np.ndarray
+    dt: np.ndarray
+    design: np.ndarray
+    target: np.ndarray
+    edges: np.ndarray
+    neighbors: np.ndarray
+    degree: np.ndarray
+
+    @classmethod
+    def build(cls, src, dst, dt, model: MotionModel, *, neighborhood_ball_radius: float = 15.0,
+              neighbors=None) -> Correspondences:
+        """Validate correspondences and build the neighbourhood graph (``neighbors`` overrides it).
+
+        Raises:
+            ModelError: ``src``/``dst`` not both :math:`(N, 2)`, ``dt`` not broadcastable to
+                :math:`(N,)`, NaN/inf or zero time gaps.
+            ShapeError: ``neighbors`` not an :math:`(E, 2)` array of indices in ``[0, N)``.
+        """
+        if not isinstance(model, MotionModel):
+            raise ModelError(f"model must be a MotionModel, got {type(model).__name__}")
+        src = np.asarray(src, dtype=np.float64)
+        dst = np.asarray(dst, dtype=np.float64)
+        if src.ndim != 2 or src.shape[1] != 2 or dst.shape != src.shape:
+            raise ModelError(f"src and dst must both be (N, 2), got {src.shape} and {dst.shape}")
+        n_points = src.shape[0]
+        dt = np.asarray(dt, dtype=np.float64)
+        if dt.ndim > 1 or dt.size not in (1, n_points):
+            raise ModelError(f"dt must be a scalar or ({n_points},), got shape {dt.shape}")
+        dt = np.broadcast_to(dt.reshape(-1), (n_points,))
+        if not (np.isfinite(src).all() and np.isfinite(dst).all() and np.isfinite(dt).all()):
+            raise ModelError("correspondences hold NaN or inf")
+        if np.any(dt == 0):
+            raise ModelError("correspondence time gaps dt must be non-zero")
+        if neighbors is None:
+            edges = neighborhood_graph(dst, neighborhood_ball_radius)
+        else:
+            edges = np.asarray(neighbors)
+            if edges.ndim != 2 or edges.shape[1] != 2 or not np.issubdtype(edges.dtype, np.integer):
+                raise ShapeError(f"neighbors must be an integer (E, 2) array, got {edges.dtype}{edges.shape}")
+            if edges.size and (edges.min() < 0 or edges.max() >= n_points):
+                raise ShapeError(f"neighbors must index points in [0, {n_points})")
+            edges = edges[edges[:, 0] != edges[:, 1]].astype(np.int64)
+        indptr, indices = adjacency(edges, n_points)
+        degree = np.diff(indptr)
+        width = int(degree.max(initial=0))
+        slot = np.arange(len(indices)) - np.repeat(indptr[:-1], degree)
+        padded = np.full((n_points, width), -1, dtype=np.int64)
+        padded[np.repeat(np.arange(n_points), degree), slot] = indices
+        design = (model.jacobian(src) * dt[:, None, None]).reshape(2 * n_points, model.n_params)
+        return cls(model, src, dst, dt, design, (dst - src).reshape(-1), edges, padded, degree)
+
+    @property
+    def n_points(self) -> int:
+        return self.src.shape[0]
+
+    def sq_residuals(self, params: np.ndarray) -> np.ndarray:
+        """Squared transfer errors of K hypotheses :math:`(K, P)`, shape :math:`(K, N)`."""
+        diff = self.target - params @ self.design.T
+        return np.square(diff[:, 0::2]) + np.square(diff[:, 1::2])
+
+    def fit(self, index: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Least-squares fits on point subsets ``index`` :math:`(S, M)`; see ``estimate_batch``."""
+        return self.model.estimate_batch(self.src[index], self.dst[index], self.dt[index], weights)
+
+    def fit_weighted(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted least-squares fits on all points, one per row of ``weights`` :math:`(K, N)`."""
+        index = np.broadcast_to(np.arange(self.n_points), weights.shape)
+        return self.fit(index, weights)
+
+    def napsac(self, rng: np.random.Generator, count: int) -> np.ndarray:
+        """``count`` minimal samples :math:`(count, m)`: a uniform centre plus ``m - 1`` of its neighbours.
+
+        Centres without enough neighbours are never drawn (NAPSAC's retry); when no point has enough,
+        the samples are drawn uniformly from all points.
+        """
+        m = self.model.min_samples
+        eligible = np.flatnonzero(self.degree >= m - 1)
+        if eligible.size == 0:
+            return np.argsort(rng.random((count, self.n_points)), axis=1)[:, :m]
+        centres = eligible[rng.integers(eligible.size, size=count)]
+        if m == 1:
+            return centres[:, None]
+        candidates = self.neighbors[centres]
+        keys = np.where(candidates >= 0, rng.random(candidates.shape), np.inf)
+        picks = np.argpartition(keys, m - 2, axis=1)[:, : m - 1]
+        return np.concatenate([centres[:, None], np.take_along_axis(candidates, picks, axis=1)], axis=1)
+
+
+@dataclass(frozen=True)
+class _Scoring:
+    """Quality of hypotheses: truncated MSAC, minus the support shared with the compound model."""
+
+    threshold: float
+    compound: np.ndarray | None
+    exponent: float
+
+    def __call__(self, pref: np.ndarray) -> np.ndarray:
+        score = pref.sum(axis=-1)
+        if self.compound is not None:
+            score = score - np.minimum(pref, self.compound).sum(axis=-1) ** self.exponent
+        return score
+
+
+def _local_optimisation(data: Correspondences, params, score, scoring: _Scoring, rng, *,
+                        spatial_coherence_weight: float):
+    """GC-RANSAC's local optimisation: graph-cut labelling then refits, while the quality improves."""
+    m = data.model.min_samples
+    subset = 7 * m
+    for _ in range(MAX_GRAPH_CUT_NUMBER):
+        inliers = np.flatnonzero(graph_cut_inliers(data.sq_residuals(params[None])[0], data.edges,
+                                                   threshold=scoring.threshold,
+                                                   spatial_coherence_weight=spatial_coherence_weight))
+        if inliers.size < m:
+            break
+        # One batched solve: all labelled inliers, then random subsets of 7 m of them, as 0/1 weights.
+        weights = np.zeros((1 + MAX_LOCAL_OPTIMIZATION_NUMBER * (inliers.size > subset), data.n_points))
+        weights[0, inliers] = 1.0
+        if inliers.size > subset:
+            keys = rng.random((MAX_LOCAL_OPTIMIZATION_NUMBER, inliers.size))
+            picks = inliers[np.argpartition(keys, subset - 1, axis=1)[:, :subset]]
+            weights[np.arange(1, len(weights))[:, None], picks] = 1.0
+        candidates, valid = data.fit_weighted(weights)
+        if not valid.any():
+            break
+        candidates = candidates[valid]
+        scores = scoring(preference(data.sq_residuals(candidates), scoring.threshold))
+        best = int(np.argmax(scores))
+        if scores[best] <= score:
+            break
+        params, score = candidates[best], scores[best]
+    return params, score
+
+
+def _polish(data: Correspondences, params, score, scoring: _Scoring):
+    """Iteratively re-weighted least squares with Tukey-like weights ``pref^2``, kept while improving."""
+    for _ in range(MAX_LEAST_SQUARES_ITERATIONS):
+        weights = preference(data.sq_residuals(params[None]), scoring.threshold) ** 2
+        if np.count_nonzero(weights) < data.model.min_samples:
+            break
+        candidate, valid = data.fit_weighted(weights)
+        if not valid[0]:
+            break
+        candidate_score = scoring(preference(data.sq_residuals(candidate), scoring.threshold))[0]
+        if candidate_score <= score:
+            break
+        params, score = candidate[0], candidate_score
+    return params, score
+
+
+def run_gc_ransac(data: Correspondences, *, threshold: float, conf: float, spatial_coherence_weight: float,
+                  max_iters: int, min_iters: int, compound_preference: np.ndarray | None,
+                  scoring_exponent: float, rng: np.random.Generator):
+    """:func:`gc_ransac` on validated :class:`Correspondences` (Progressive-X calls it repeatedly)."""
+    m = data.model.min_samples
+    n_points = data.n_points
+    if n_points < m:
+        return None, np.zeros(n_points, dtype=bool), 0
+    scoring = _Scoring(threshold, compound_preference, scoring_exponent)
+    truncated = (1.5 * threshold) ** 2
+    best, best_score = None, -np.inf
+    required = max_iters
+    iterations = 0
+    while iterations < required:
+        count = min(BATCH_SIZE, required - iterations)
+        params, valid = data.fit(data.napsac(rng, count))
+        iterations += count
+        if not valid.any():
+            continue
+        params = params[valid]
+        scores = scoring(preference(data.sq_residuals(params), threshold))
+        top = int(np.argmax(scores))
+        if scores[top] <= best_score:
+            continue
+        best, best_score = _local_optimisation(data, params[top], scores[top], scoring, rng,
+                                               spatial_coherence_weight=spatial_coherence_weight)
+        inlier_ratio = np.count_nonzero(data.sq_residuals(best[None])[0] < truncated) / n_points
+        bound = iteration_bound(inlier_ratio, m, conf)
+        required = int(np.clip(np.ceil(bound) + 1 if np.isfinite(bound) else max_iters, min_iters, max_iters))
+    if best is None:
+        return None, np.zeros(n_points, dtype=bool), iterations
+    best, _ = _polish(data, best, best_score, scoring)
+    inliers = graph_cut_inliers(data.sq_residuals(best[None])[0], data.edges, threshold=threshold,
+                                spatial_coherence_weight=spatial_coherence_weight)
+    return best, inliers, iterations
+
+
+def check_fitting_parameters(*, threshold, conf, spatial_coherence_weight, max_iters, min_iters=0,
+                             scoring_exponent=2) -> None:
+    """Raise :class:`ConfigError` naming the first out-of-range robust-fitting parameter."""
+    if not threshold > 0:
+        raise ConfigError(f"threshold must be positive, got {threshold}")
+    if not 0 < conf < 1:
+        raise ConfigError(f"conf must lie in (0, 1), got {conf}")
+    if not 0 <= spatial_coherence_weight <= 1:
+        raise ConfigError(f"spatial_coherence_weight must lie in [0, 1], got {spatial_coherence_weight}")
+    if not 1 <= max_iters or not 0 <= min_iters <= max_iters:
+        raise ConfigError(f"need 0 <= min_iters <= max_iters, 1 <= max_iters; got {min_iters}, {max_iters}")
+    if not scoring_exponent > 0:
+        raise ConfigError(f"scoring_exponent must be positive, got {scoring_exponent}")
+
+
+def gc_ransac(
+    src,
+    dst,
+    dt,
+    model: MotionModel,
+    *,
+    threshold: float = 1.5,
+    conf: float = 0.95,
+    spatial_coherence_weight: float = 0.14,
+    neighborhood_ball_radius: float = 15.0,
+    neighbors=None,
+    max_iters: int = 1000,
+    min_iters: int = 20,
+    compound_preference=None,
+    scoring_exponent: float = 2,
+    rng=None,
+):
+    """Robustly fit one motion model to feature correspondences with GC-RANSAC.
+
+    See the module docstring for the algorithm. Randomness enters only through ``rng``: equal seeds
+    give identical results.
+
+    Args:
+        src: feature positions at the earlier time, :math:`(N, 2)` pixels.
+        dst: the same features ``dt`` later, :math:`(N, 2)`.
+        dt: time gaps in seconds, scalar or :math:`(N,)`, non-zero.
+        model: a motion model of :mod:`evseg_torch.motion` (its ``min_samples`` is the sample size m).
+        threshold: inlier threshold ``tau`` in pixels of transfer error; points count as inliers below
+            the truncated threshold ``1.5 tau``. The paper uses 1.5 px for LK tracks.
+        conf: RANSAC confidence ``mu`` of the adaptive iteration count (paper: 0.95).
+        spatial_coherence_weight: Potts weight ``w`` of the graph-cut labelling, in ``[0, 1]``; 0.14 is
+            GC-RANSAC's default, 0 turns the labelling into plain thresholding.
+        neighborhood_ball_radius: radius in pixels of the neighbourhood graph on ``dst``.
+        neighbors: a ready neighbourhood graph, integer :math:`(E, 2)`; overrides the radius.
+        max_iters: cap on the number of minimal samples.
+        min_iters: floor on the number of minimal samples (samples come in batches of
+            :data:`BATCH_SIZE`, so at least ``min(BATCH_SIZE, max_iters)`` are drawn anyway).
+        compound_preference: Progressive-X's compound preference vector :math:`(N,)` in ``[0, 1]``;
+            ``None`` for plain single-model fitting.
+        scoring_exponent: power of the support shared with the compound model in the quality.
+        rng: :class:`numpy.random.Generator` or seed.
+
+    Returns:
+        ``(params, inliers, n_iterations)``: the model parameters :math:`(P,)` float64, or ``None``
+        when no non-degenerate hypothesis was found (too few points, all samples degenerate); the
+        graph-cut inlier mask :math:`(N,)` (all False with ``None``); the number of minimal samples
+        drawn.
+
+    Raises:
+        ModelError: malformed correspondences.
+        ConfigError: an out-of-range parameter.
+        ShapeError: malformed ``neighbors`` or ``compound_preference``.
+
+    Examples:
+        >>> from evseg_torch.motion import Translation
+        >>> rng = np.random.default_rng(0)
+        >>> src = rng.uniform(0, 100, (50, 2))
+        >>> dst = src + np.array([1.0, -2.0])
+        >>> dst[:10] = rng.uniform(0, 100, (10, 2))
+        >>> params, inliers, _ = gc_ransac(src, dst, 0.01, Translation((100, 100)), rng=0)
+        >>> np.round(params, 6).tolist(), int(inliers.sum())
+        ([100.0, -200.0], 40)
+    """
+    settings = {"threshold": threshold, "conf": conf, "spatial_coherence_weight": spatial_coherence_weight}
+    check_fitting_parameters(**settings, max_iters=max_iters, min_iters=min_iters,
+                             scoring_exponent=scoring_exponent)
+    data = Correspondences.build(src, dst, dt, model, neighborhood_ball_radius=neighborhood_ball_radius,
+                                 neighbors=neighbors)
+    if compound_preference is not None:
+        compound_preference = np.asarray(compound_preference, dtype=np.float64)
+        if compound_preference.shape != (data.n_points,):
+            raise ShapeError(f"compound_preference must have shape ({data.n_points},), "
+                             f"got {compound_preference.shape}")
+    return run_gc_ransac(data, **settings, max_iters=int(max_iters), min_iters=int(min_iters),
+                         compound_preference=compound_preference, scoring_exponent=scoring_exponent,
+                         rng=np.random.default_rng(rng))
