@@ -1,20 +1,42 @@
-"""evseg_torch: event-camera motion segmentation by cascaded two-level multi-model fitting."""
+"""evseg_torch: event-camera motion segmentation by cascaded two-level multi-model fitting.
 
+``CascadedSegmenter`` and ``Segmentation`` load torch on first use, so that NumPy-only parts (level
+one, io, metrics) import without it.
+"""
+
+from evseg_torch.config import SegmenterConfig, load_config
 from evseg_torch.errors import ConfigError, EventFormatError, EvsegError, ModelError, ReaderError, ShapeError
 from evseg_torch.events import EVENT_DTYPE, EventBatch, as_events, to_torch
+from evseg_torch.io import load_events
 
 __version__ = "0.1.0"
 
+_LAZY = {"CascadedSegmenter", "Segmentation"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        from evseg_torch import pipeline
+
+        return getattr(pipeline, name)
+    raise AttributeError(f"module 'evseg_torch' has no attribute {name!r}")
+
+
 __all__ = [
     "EVENT_DTYPE",
+    "CascadedSegmenter",
     "ConfigError",
     "EventBatch",
     "EventFormatError",
     "EvsegError",
     "ModelError",
     "ReaderError",
+    "Segmentation",
+    "SegmenterConfig",
     "ShapeError",
     "__version__",
     "as_events",
+    "load_config",
+    "load_events",
     "to_torch",
 ]

@@ -26,13 +26,16 @@ would hide the defect. Sort first with ``events[np.argsort(events["t"], kind="st
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterable, Iterator
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-import torch
 
 from evseg_torch.errors import EventFormatError
+
+if TYPE_CHECKING:  # torch is imported lazily so that level one (NumPy) never loads it
+    import torch
 
 EVENT_DTYPE = np.dtype([("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "i1")])
 
@@ -261,7 +264,7 @@ def to_torch(
     events: np.ndarray,
     t_ref_us: int | None = None,
     device: torch.device | str | None = None,
-    dtype: torch.dtype = torch.float32,
+    dtype: torch.dtype | None = None,
 ) -> EventBatch:
     """Convert canonical events to an :class:`EventBatch`.
 
@@ -269,12 +272,15 @@ def to_torch(
         events: canonical structured array :math:`(N,)` (see :func:`as_events`).
         t_ref_us: reference time in microseconds; defaults to the first event's timestamp.
         device: torch device of the output.
-        dtype: floating dtype of the output.
+        dtype: floating dtype of the output; defaults to float32.
 
     Returns:
         :class:`EventBatch` with ``t`` in seconds relative to ``t_ref_us`` (computed in int64 first,
         so no precision is lost to float32 absolute times).
     """
+    import torch
+
+    dtype = dtype or torch.float32
     if events.dtype != EVENT_DTYPE:
         raise EventFormatError(f"to_torch expects canonical events of dtype {EVENT_DTYPE}, got {events.dtype}")
     t_ref = int(events["t"][0]) if t_ref_us is None and len(events) else int(t_ref_us or 0)
@@ -306,7 +312,8 @@ def _checked_chunks(chunks: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
 
 
 def _columns(data) -> tuple[np.ndarray, ...]:
-    if isinstance(data, torch.Tensor):
+    torch = sys.modules.get("torch")
+    if torch is not None and isinstance(data, torch.Tensor):
         raise EventFormatError("events must be a NumPy array; convert tensors with tensor.cpu().numpy()")
     if not isinstance(data, np.ndarray):
         try:

@@ -206,11 +206,12 @@ class MotionModel(ABC):
             a, b = a * root[..., None], b * root
         normal = np.swapaxes(a, 1, 2) @ a
         rhs = (np.swapaxes(a, 1, 2) @ b[..., None])[..., 0]
-        # Scale-free degeneracy test: the normal matrix's condition number after diagonal scaling.
+        # Scale-free degeneracy test: after scaling to a unit diagonal the determinant lies in [0, 1] and
+        # vanishes with the smallest eigenvalue (cheaper than eigenvalues, which RANSAC would pay per sample).
         diag = np.sqrt(np.clip(np.einsum("sii->si", normal), 1e-300, None))
         scaled = normal / (diag[:, :, None] * diag[:, None, :])
-        eig = np.linalg.eigvalsh(scaled)
-        valid = (eig[:, 0] > 1e-10 * eig[:, -1]) & np.all(np.isfinite(normal), axis=(1, 2))
+        finite = np.all(np.isfinite(scaled), axis=(1, 2))
+        valid = finite & (np.linalg.det(np.where(finite[:, None, None], scaled, 0.0)) > 1e-10)
         normal = np.where(valid[:, None, None], normal, np.eye(self.n_params))
         params = np.linalg.solve(normal, rhs[..., None])[..., 0]
         return np.where(valid[:, None], params, 0.0), valid
