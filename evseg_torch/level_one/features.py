@@ -1,0 +1,388 @@
+"""Level one's input: feature correspondences between two raw event images of one window.
+
+Following Section IV-A of the paper, Shi-Tomasi corners are detected on a raw (not motion-compensated)
+event count image early in the window and tracked with pyramidal Lucas-Kanade into a count image late
+in the window:
+
+1. :func:`event_image` accumulates the events of the first and of the last sub-window (by default
+   each a third of the window) into count images of the sensor's size, which :func:`to_uint8`
+   blurs lightly and scales to 8 bits with clipping.
+2. :func:`detect_corners` smooths the early 8-bit image (:func:`kornia.filters.gaussian_blur2d`), scores it
+   with :func:`kornia.feature.gftt_response` (the structure tensor's smaller eigenvalue) and keeps
+   local maxima that are at least ``min_distance`` apart and above a relative quality threshold,
+   strongest first, as ``cv2.goodFeaturesToTrack`` does.
+3. :func:`track_features` runs ``cv2.calcOpticalFlowPyrLK`` forwards and backwards on both 8-bit
+   images and keeps tracks that succeed both ways, come back to within ``fb_threshold``
+   pixels of their start and end inside the image.
+
+Each image stands for the mid time of its sub-window, so a track's time gap ``dt`` is the distance
+between the two mid times. :func:`extract_correspondences` chains the three steps for one window.
+Tracks stay precise while a sub-window smears a corner over a few pixels: with the defaults and a
+30 ms window, up to about 600 px/s; faster motions need a shorter ``sub_window_ms``.
+
+torch is used only for kornia's smoothing and corner response; everything else is NumPy and OpenCV.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import cv2
+import kornia
+import numpy as np
+import torch
+
+from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
+from evseg_torch.events import EVENT_DTYPE, check_sensor_size
+
+__all__ = [
+    "Correspondences",
+    "Tracks",
+    "detect_corners",
+    "event_image",
+    "extract_correspondences",
+    "to_uint8",
+    "track_features",
+]
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """Feature positions at two times of one window, the input of level one's model fitting.
+
+    Attributes:
+        src: feature positions in the early event image, ``x`` the column, float64 :math:`(M, 2)`.
+        dst: the same features tracked into the late event image, float64 :math:`(M, 2)`.
+        dt: seconds from the early to the late image (``t_dst - t_src``), float64 :math:`(M,)`.
+        t_src: seconds, relative to the window's reference time, at which ``src`` holds.
+        t_dst: seconds, relative to the window's reference time, at which ``dst`` holds.
+    """
+
+    src: np.ndarray
+    dst: np.ndarray
+    dt: np.ndarray
+    t_src: float
+    t_dst: float
+
+    def __len__(self) -> int:
+        return int(self.src.shape[0])
+
+
+class Tracks(NamedTuple):
+    """Result of :func:`track_features`, one row per input point.
+
+    Attributes:
+        src: the input points, float64 :math:`(N, 2)`.
+        dst: their tracked positions in the second image, float64 :math:`(N, 2)`; only meaningful
+            where ``keep`` is True.
+        keep: True for tracks that passed every check, bool :math:`(N,)`.
+    """
+
+    src: np.ndarray
+    dst: np.ndarray
+    keep: np.ndarray
+
+
+def event_image(xy, sensor_size: tuple[int, int]) -> np.ndarray:
+    """Count events per pixel, without motion compensation.
+
+    Args:
+        xy: event pixel positions, ``x`` the column and ``y`` the row, :math:`(N, 2)`; float positions
+            are rounded to the nearest pixel.
+        sensor_size: ``(H, W)``.
+
+    Returns:
+        float32 image :math:`(H, W)` whose pixels hold event counts.
+
+    Raises:
+        ShapeError: ``xy`` is not :math:`(N, 2)`.
+        EventFormatError: a position lies outside the sensor or is not finite, or ``sensor_size`` is
+            invalid.
+
+    Examples:
+        >>> event_image(np.array([[0, 0], [2, 1], [2, 1]]), (2, 3))
+        array([[1., 0., 0.],
+               [0., 0., 2.]], dtype=float32)
+    """
+    height, width = check_sensor_size(sensor_size)
+    xy = np.asarray(xy)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise ShapeError(f"xy must be (N, 2) pixel positions, got shape {xy.shape}")
+    if xy.dtype.kind == "f":
+        if not np.all(np.isfinite(xy)):
+            raise EventFormatError("xy holds NaN or inf")
+        xy = np.rint(xy)
+    x, y = xy[:, 0].astype(np.int64), xy[:, 1].astype(np.int64)
+    outside = (x < 0) | (x >= width) | (y < 0) | (y >= height)
+    if np.any(outside):
+        first = int(np.argmax(outside))
+        raise EventFormatError(
+            f"event {first} at (x={x[first]}, y={y[first]}) lies outside the sensor "
+            f"(H, W) = {(height, width)}; check sensor_size"
+        )
+    counts = np.bincount(y * width + x, minlength=height * width)
+    return counts.reshape(height, width).astype(np.float32)
+
+
+def detect_corners(
+    image,
+    *,
+    max_corners: int = 200,
+    min_distance: int = 4,
+    quality_level: float = 0.01,
+    sigma: float = 1.0,
+) -> np.ndarray:
+    """Shi-Tomasi corners of an image, strongest first.
+
+    The image is smoothed with a Gaussian of standard deviation ``sigma`` (event count images are
+    spiky; ``sigma=0`` skips it), scored with :func:`kornia.feature.gftt_response` (which itself
+    integrates the structure tensor over a fixed 7x7, σ=1 window), and a pixel is kept when its
+    score is the maximum of the :math:`(2 d + 1) \\times (2 d + 1)` square around it, ``d`` being
+    ``min_distance``, and exceeds ``quality_level`` times the image's best score. A negligible
+    position-dependent ramp breaks ties between equal scores, so every two kept corners are more
+    than ``min_distance`` apart along ``x`` or ``y``, hence also in Euclidean distance. This
+    suppression is stricter than OpenCV's greedy one: a corner also hides weaker maxima of its
+    square that a greedy pass would keep after their suppressor had been suppressed itself.
+
+    Args:
+        image: :math:`(H, W)` array, e.g. from :func:`event_image`.
+        max_corners: keep at most this many corners, the strongest.
+        min_distance: minimum distance in pixels between corners, at least 1.
+        quality_level: relative score threshold in ``[0, 1)``, as in ``cv2.goodFeaturesToTrack``.
+        sigma: standard deviation in pixels of the pre-smoothing, ``>= 0``.
+
+    Returns:
+        float64 :math:`(M, 2)` corner positions ``(x, y)`` on the pixel grid, ``M <= max_corners``,
+        in decreasing order of score; :math:`(0, 2)` for an image without structure.
+
+    Raises:
+        ShapeError: ``image`` is not 2-D.
+        ConfigError: a parameter is out of range.
+    """
+    image = _check_image(image, "image")
+    if int(max_corners) < 1:
+        raise ConfigError(f"max_corners must be at least 1, got {max_corners}")
+    if int(min_distance) < 1:
+        raise ConfigError(f"min_distance must be at least 1 pixel, got {min_distance}")
+    if not 0.0 <= quality_level < 1.0:
+        raise ConfigError(f"quality_level must lie in [0, 1), got {quality_level}")
+    if not sigma >= 0.0:
+        raise ConfigError(f"sigma must be non-negative, got {sigma}")
+    height, width = image.shape
+    with torch.inference_mode():
+        tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None, None]
+        if sigma > 0.0:
+            size = 2 * math.ceil(3.0 * sigma) + 1
+            tensor = kornia.filters.gaussian_blur2d(tensor, (size, size), (sigma, sigma))
+        score = kornia.feature.gftt_response(tensor)[0, 0].numpy().astype(np.float64)
+    best = float(score.max())
+    if not best > 0.0:
+        return np.zeros((0, 2), dtype=np.float64)
+    # The ramp adds at most 1e-9 of the best score: below float32 resolution of every score above 2 %
+    # of the best, so it orders ties and nothing else, while its steps stay resolvable in float64.
+    score += np.arange(height * width, 0, -1).reshape(height, width) * (best * 1e-9 / (height * width))
+    side = 2 * int(min_distance) + 1
+    # A grey dilation is the separable running maximum: the max-pool NMS at a fraction of its cost.
+    peaks = score == cv2.dilate(score, np.ones((side, side), np.uint8))
+    peaks &= score > best * max(quality_level, 1e-6)
+    rows, cols = np.nonzero(peaks)
+    order = np.argsort(-score[rows, cols], kind="stable")[: int(max_corners)]
+    return np.column_stack([cols[order], rows[order]]).astype(np.float64)
+
+
+def to_uint8(image, *, sigma: float = 0.7, percentile: float = 99.5) -> np.ndarray:
+    """Smooth a count image and scale it to ``uint8`` for OpenCV's Lucas-Kanade.
+
+    A light Gaussian blur (``cv2.GaussianBlur``) turns the sparse, spiky counts into the smooth
+    intensities LK's gradients need; on synthetic scenes, σ = 0.7 px keeps the most tracks within
+    1.5 px of the truth. Counts are then multiplied by ``255 / c``, where ``c`` is the
+    ``percentile`` of the *non-zero* pixels (most pixels of an event image are empty, so a
+    percentile over all of them would often be 0), rounded and clipped. Normalising each image by
+    its own scale keeps LK's brightness constancy when the two sub-windows hold different numbers
+    of events, and the clipping keeps hot pixels and bursts from darkening everything else.
+
+    Args:
+        image: non-negative :math:`(H, W)` array.
+        sigma: standard deviation of the blur in pixels, ``>= 0`` (0: none).
+        percentile: the percentile of non-zero pixels that maps to 255, in ``(0, 100]``.
+
+    Returns:
+        uint8 :math:`(H, W)`.
+    """
+    image = np.asarray(_check_image(image, "image"), dtype=np.float32)
+    if not sigma >= 0.0 or not 0.0 < percentile <= 100.0:
+        raise ConfigError(f"need sigma >= 0 and 0 < percentile <= 100, got {sigma} and {percentile}")
+    if sigma > 0.0:
+        image = cv2.GaussianBlur(image, (0, 0), sigma)
+    nonzero = image[image > 0]
+    scale = float(np.percentile(nonzero, percentile)) if nonzero.size else 1.0
+    return np.clip(np.rint(image * (255.0 / scale)), 0, 255).astype(np.uint8)
+
+
+def track_features(
+    image0,
+    image1,
+    points,
+    *,
+    win_size: tuple[int, int] = (21, 21),
+    max_level: int = 3,
+    fb_threshold: float = 0.5,
+    max_iterations: int = 30,
+    epsilon: float = 0.01,
+) -> Tracks:
+    """Track points from one image into another with pyramidal Lucas-Kanade.
+
+    Images that are not ``uint8`` are converted with :func:`to_uint8`. Points are tracked forwards
+    with ``cv2.calcOpticalFlowPyrLK`` and the result backwards; a track is kept when both passes
+    succeed (OpenCV's status), the round trip returns to within ``fb_threshold`` pixels of the
+    start, and the tracked position lies inside the image.
+
+    Args:
+        image0: first image :math:`(H, W)`.
+        image1: second image :math:`(H, W)`.
+        points: positions ``(x, y)`` in ``image0``, :math:`(N, 2)`.
+        win_size: LK search window ``(width, height)`` at each pyramid level.
+        max_level: number of pyramid levels above the full image (0: no pyramid).
+        fb_threshold: largest forward-backward round-trip error in pixels, positive.
+        max_iterations: LK iterations per level.
+        epsilon: LK stops when an update is smaller than this many pixels.
+
+    Returns:
+        :class:`Tracks` ``(src, dst, keep)`` with one row per point.
+
+    Raises:
+        ShapeError: images of different or non-2-D shapes, or ``points`` not :math:`(N, 2)`.
+        ConfigError: a parameter is out of range.
+    """
+    image0 = _check_image(image0, "image0")
+    image1 = _check_image(image1, "image1")
+    if image0.shape != image1.shape:
+        raise ShapeError(f"image0 and image1 must have the same shape, got {image0.shape} and {image1.shape}")
+    src = np.array(points, dtype=np.float64)
+    if src.ndim != 2 or src.shape[1] != 2:
+        raise ShapeError(f"points must be (N, 2), got shape {src.shape}")
+    if not fb_threshold > 0.0:
+        raise ConfigError(f"fb_threshold must be positive, got {fb_threshold}")
+    if int(max_level) < 0 or int(max_iterations) < 1 or not epsilon > 0.0:
+        raise ConfigError(
+            "need max_level >= 0, max_iterations >= 1 and epsilon > 0, "
+            f"got {max_level}, {max_iterations} and {epsilon}"
+        )
+    if src.shape[0] == 0:
+        return Tracks(src, src.copy(), np.zeros(0, dtype=bool))
+    frames = [image if image.dtype == np.uint8 else to_uint8(image) for image in (image0, image1)]
+    lk = {
+        "winSize": tuple(int(v) for v in win_size),
+        "maxLevel": int(max_level),
+        "criteria": (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iterations), float(epsilon)),
+    }
+    start = src.astype(np.float32).reshape(-1, 1, 2)
+    forward, status_f, _ = cv2.calcOpticalFlowPyrLK(frames[0], frames[1], start, None, **lk)
+    backward, status_b, _ = cv2.calcOpticalFlowPyrLK(frames[1], frames[0], forward, None, **lk)
+    dst = forward.reshape(-1, 2).astype(np.float64)
+    round_trip = np.linalg.norm(backward.reshape(-1, 2).astype(np.float64) - src, axis=1)
+    height, width = image0.shape
+    inside = (dst[:, 0] >= 0) & (dst[:, 0] <= width - 1) & (dst[:, 1] >= 0) & (dst[:, 1] <= height - 1)
+    keep = (status_f.ravel() == 1) & (status_b.ravel() == 1) & (round_trip <= fb_threshold) & inside
+    return Tracks(src, dst, keep & np.all(np.isfinite(dst), axis=1))
+
+
+def extract_correspondences(
+    events: np.ndarray,
+    sensor_size: tuple[int, int],
+    *,
+    sub_window: float = 1.0 / 3.0,
+    sub_window_ms: float | None = None,
+    t_ref: int | None = None,
+    max_corners: int = 200,
+    min_distance: int = 4,
+    quality_level: float = 0.01,
+    sigma: float = 1.0,
+    win_size: tuple[int, int] = (21, 21),
+    max_level: int = 3,
+    fb_threshold: float = 0.5,
+) -> Correspondences:
+    """Feature correspondences between the beginning and the end of one window of events.
+
+    The window spans the first to the last event. The early image accumulates the events of its
+    first ``sub_window`` fraction, the late image those of its last; each image stands for the mid
+    time of its sub-window, so every track spans ``dt = (1 - sub_window) * duration``. A third
+    (the default) balances two needs: enough events per image for stable corners, and a gap long
+    enough for displacements of a few pixels while each image's own motion blur stays below
+    a third of the window's motion.
+
+    Args:
+        events: canonical events of one window (:data:`evseg_torch.events.EVENT_DTYPE`), sorted.
+        sensor_size: ``(H, W)``.
+        sub_window: length of each sub-window as a fraction of the window, in ``(0, 0.5]``.
+        sub_window_ms: length of each sub-window in milliseconds; when given it replaces
+            ``sub_window`` and is capped at half the window.
+        t_ref: reference time in microseconds for ``t_src`` and ``t_dst``; defaults to the first
+            event's timestamp.
+        max_corners, min_distance, quality_level, sigma: see :func:`detect_corners`.
+        win_size, max_level, fb_threshold: see :func:`track_features`.
+
+    Returns:
+        :class:`Correspondences` of the kept tracks (possibly none).
+
+    Raises:
+        EventFormatError: events not canonical, empty, outside ``sensor_size`` or all at one time.
+        ConfigError: a parameter is out of range.
+    """
+    height, width = check_sensor_size(sensor_size)
+    if not isinstance(events, np.ndarray) or events.dtype != EVENT_DTYPE:
+        raise EventFormatError(
+            f"events must be canonical (dtype {EVENT_DTYPE}); convert them with evseg_torch.events.as_events"
+        )
+    if events.ndim != 1 or events.shape[0] == 0:
+        raise EventFormatError(f"need a non-empty 1-D array of events, got shape {events.shape}")
+    t_us = events["t"]
+    t_first, t_last = int(t_us[0]), int(t_us[-1])
+    duration = t_last - t_first
+    if duration <= 0:
+        raise EventFormatError(
+            f"the window spans {duration} us; correspondences need events at two different times"
+        )
+    if sub_window_ms is not None:
+        if not sub_window_ms > 0.0:
+            raise ConfigError(f"sub_window_ms must be positive, got {sub_window_ms}")
+        length = min(float(sub_window_ms) * 1e3, 0.5 * duration)
+    elif 0.0 < sub_window <= 0.5:
+        length = float(sub_window) * duration
+    else:
+        raise ConfigError(f"sub_window must be a fraction in (0, 0.5], got {sub_window}")
+    # Sub-window bounds are inclusive on the outside and exclusive inside, rounded so that the
+    # early image always holds the first event and the late one the last.
+    early_end = np.searchsorted(t_us, t_first + length, side="left")
+    late_begin = np.searchsorted(t_us, t_last - length, side="right")
+    xy = np.column_stack([events["x"], events["y"]])
+    # Corners are detected on the 8-bit image that LK tracks: its clipping keeps hot pixels and bursts
+    # from raising the relative quality threshold above every genuine corner.
+    image0 = to_uint8(event_image(xy[: max(int(early_end), 1)], (height, width)))
+    image1 = to_uint8(event_image(xy[min(int(late_begin), len(events) - 1) :], (height, width)))
+    origin = t_first if t_ref is None else int(t_ref)
+    t_src = (t_first + 0.5 * length - origin) * 1e-6
+    t_dst = (t_last - 0.5 * length - origin) * 1e-6
+    corners = detect_corners(
+        image0, max_corners=max_corners, min_distance=min_distance, quality_level=quality_level, sigma=sigma
+    )
+    tracks = track_features(
+        image0, image1, corners, win_size=win_size, max_level=max_level, fb_threshold=fb_threshold
+    )
+    kept = int(np.count_nonzero(tracks.keep))
+    return Correspondences(
+        src=tracks.src[tracks.keep],
+        dst=tracks.dst[tracks.keep],
+        dt=np.full(kept, t_dst - t_src, dtype=np.float64),
+        t_src=t_src,
+        t_dst=t_dst,
+    )
+
+
+def _check_image(image, name: str) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise ShapeError(f"{name} must be a 2-D (H, W) image, got shape {image.shape}")
+    return image

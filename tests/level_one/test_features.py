@@ -1,0 +1,267 @@
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
+from evseg_torch.events import EVENT_DTYPE, as_events
+from evseg_torch.level_one.features import (
+    Correspondences,
+    detect_corners,
+    event_image,
+    extract_correspondences,
+    to_uint8,
+    track_features,
+)
+from evseg_torch.motion import Affine4
+from evseg_torch.synthetic import make_scene
+
+SENSOR = (180, 240)
+
+
+def _texture(rng, shape=SENSOR, sigma=2.0):
+    """A smooth random texture with plenty of corners, in [0, 255]."""
+    noise = ndimage.gaussian_filter(rng.random(shape), sigma)
+    noise -= noise.min()
+    return (255.0 * noise / noise.max()).astype(np.float32)
+
+
+class TestEventImage:
+    def test_counts(self):
+        rng = np.random.default_rng(0)
+        xy = np.column_stack([rng.integers(0, 240, 1000), rng.integers(0, 180, 1000)])
+        expected = np.zeros(SENSOR)
+        np.add.at(expected, (xy[:, 1], xy[:, 0]), 1)
+        image = event_image(xy, SENSOR)
+        assert image.dtype == np.float32 and image.shape == SENSOR
+        np.testing.assert_array_equal(image, expected)
+
+    def test_float_positions_round_to_nearest_pixel(self):
+        image = event_image(np.array([[1.4, 0.6], [1.6, 1.4]]), (3, 3))
+        assert image[1, 1] == 1 and image[1, 2] == 1 and image.sum() == 2
+
+    def test_outside_sensor_raises(self):
+        with pytest.raises(EventFormatError, match="outside the sensor"):
+            event_image(np.array([[240, 3]]), SENSOR)
+        with pytest.raises(EventFormatError, match="outside the sensor"):
+            event_image(np.array([[3, -1]]), SENSOR)
+
+    def test_bad_input_raises(self):
+        with pytest.raises(ShapeError):
+            event_image(np.zeros((4, 3)), SENSOR)
+        with pytest.raises(EventFormatError, match="NaN"):
+            event_image(np.array([[np.nan, 1.0]]), SENSOR)
+        with pytest.raises(EventFormatError, match="sensor_size"):
+            event_image(np.zeros((1, 2)), (0, 10))
+
+
+class TestDetectCorners:
+    def test_finds_the_corners_of_a_square(self):
+        image = np.zeros(SENSOR, dtype=np.float32)
+        image[60:110, 80:150] = 1.0  # corners at x in {80, 149}, y in {60, 109}
+        corners = detect_corners(image, max_corners=4)
+        assert corners.shape == (4, 2) and corners.dtype == np.float64
+        truth = np.array([[80, 60], [149, 60], [80, 109], [149, 109]], dtype=float)
+        distances = np.linalg.norm(corners[:, None] - truth[None], axis=-1)
+        assert np.all(distances.min(axis=0) <= 2.0), corners
+        assert np.all(distances.min(axis=1) <= 2.0), corners
+
+    def test_min_distance_max_corners_and_order(self):
+        image = _texture(np.random.default_rng(1), sigma=1.0)
+        for min_distance, max_corners in [(1, 500), (4, 50), (9, 20)]:
+            corners = detect_corners(image, min_distance=min_distance, max_corners=max_corners)
+            assert 0 < len(corners) <= max_corners
+            gaps = np.abs(corners[:, None] - corners[None]).max(axis=-1)
+            np.fill_diagonal(gaps, np.inf)
+            assert gaps.min() > min_distance
+        few = detect_corners(image, min_distance=4, max_corners=10)
+        np.testing.assert_array_equal(few, detect_corners(image, min_distance=4, max_corners=50)[:10])
+
+    def test_quality_level_thresholds(self):
+        image = _texture(np.random.default_rng(2), sigma=1.0)
+        loose = detect_corners(image, quality_level=0.0, max_corners=10_000)
+        strict = detect_corners(image, quality_level=0.3, max_corners=10_000)
+        assert 0 < len(strict) < len(loose)
+        np.testing.assert_array_equal(strict, loose[: len(strict)])
+
+    def test_flat_image_has_no_corners(self):
+        assert detect_corners(np.full(SENSOR, 3.0)).shape == (0, 2)
+
+    def test_bad_input_raises(self):
+        image = np.zeros(SENSOR)
+        with pytest.raises(ShapeError):
+            detect_corners(np.zeros((2, *SENSOR)))
+        for kwargs in [{"max_corners": 0}, {"min_distance": 0}, {"quality_level": 1.0}, {"sigma": -1.0}]:
+            with pytest.raises(ConfigError):
+                detect_corners(image, **kwargs)
+
+
+class TestTrackFeatures:
+    def test_recovers_integer_shift(self):
+        base = _texture(np.random.default_rng(3), shape=(200, 260))
+        shift = np.array([3, -2])  # (x, y): image1[y, x] = image0[y + 2, x - 3]
+        image0, image1 = base[10:190, 10:250], base[12:192, 7:247]
+        points = detect_corners(image0, max_corners=100)
+        src, dst, keep = track_features(image0, image1, points)
+        np.testing.assert_array_equal(src, points)
+        assert keep.mean() > 0.9
+        # LK's 21 x 21 window is truncated within 10 px of the border, where tracks are less exact.
+        interior = keep & np.all((src >= 11) & (src <= np.array([240, 180]) - 12), axis=1)
+        assert interior.sum() > 50
+        errors = np.linalg.norm(dst[interior] - src[interior] - shift, axis=1)
+        assert np.median(errors) < 0.01 and errors.max() < 0.15
+
+    def test_drops_tracks_leaving_the_image_and_unmatched_ones(self):
+        rng = np.random.default_rng(4)
+        image0 = _texture(rng)
+        image1 = np.zeros_like(image0)
+        image1[:, :-20] = image0[:, 20:]  # everything moves 20 px left, the right strip is new
+        points = np.array([[10.0, 90.0], [100.0, 90.0], [230.0, 90.0]])
+        _, dst, keep = track_features(image0, image1, points)
+        assert not keep[0]  # leaves the image
+        assert keep[1] and np.allclose(dst[1], [80.0, 90.0], atol=0.1)
+        assert not keep[2]  # its texture is gone, so the round trip fails
+
+    def test_unrelated_images_lose_most_tracks(self):
+        rng = np.random.default_rng(5)
+        image0, image1 = _texture(rng, sigma=1.0), _texture(rng, sigma=1.0)
+        _, _, keep = track_features(image0, image1, detect_corners(image0, max_corners=100))
+        assert keep.mean() < 0.2
+
+    def test_empty_points_and_bad_input(self):
+        image = np.zeros(SENSOR)
+        src, dst, keep = track_features(image, image, np.zeros((0, 2)))
+        assert src.shape == dst.shape == (0, 2) and keep.shape == (0,)
+        with pytest.raises(ShapeError):
+            track_features(image, np.zeros((10, 10)), np.zeros((1, 2)))
+        with pytest.raises(ShapeError):
+            track_features(image, image, np.zeros((3,)))
+        with pytest.raises(ConfigError):
+            track_features(image, image, np.zeros((1, 2)), fb_threshold=0.0)
+
+    def test_to_uint8_clips_hot_pixels(self):
+        image = np.zeros(SENSOR, dtype=np.float32)
+        image[:50, :50] = 2.0
+        image[100, 100] = 1000.0  # one hot pixel above the 99th percentile of non-zero pixels
+        frame = to_uint8(image)
+        assert frame.dtype == np.uint8 and frame[100, 100] == 255 and frame[0, 0] == 255
+        assert to_uint8(np.zeros(SENSOR)).max() == 0
+
+
+def _events(xy, t_us):
+    data = np.empty(len(t_us), dtype=EVENT_DTYPE)
+    data["t"], data["x"], data["y"], data["p"] = t_us, xy[:, 0], xy[:, 1], 1
+    return data
+
+
+class TestExtractCorrespondences:
+    def test_bad_input_raises(self):
+        rng = np.random.default_rng(6)
+        events = _events(rng.integers(0, 100, (50, 2)), np.arange(50) * 100)
+        with pytest.raises(EventFormatError, match="non-empty"):
+            extract_correspondences(events[:0], SENSOR)
+        with pytest.raises(EventFormatError, match="outside the sensor"):
+            extract_correspondences(events, (50, 50))
+        with pytest.raises(EventFormatError, match="sensor_size"):
+            extract_correspondences(events, (180,))
+        with pytest.raises(EventFormatError, match="canonical"):
+            extract_correspondences(np.zeros((50, 4)), SENSOR)
+        with pytest.raises(EventFormatError, match="two different times"):
+            extract_correspondences(_events(np.zeros((5, 2), dtype=int), np.full(5, 7)), SENSOR)
+        for kwargs in [{"sub_window": 0.0}, {"sub_window": 0.6}, {"sub_window_ms": -1.0}]:
+            with pytest.raises(ConfigError):
+                extract_correspondences(events, SENSOR, **kwargs)
+
+    def test_times_follow_the_sub_windows(self):
+        rng = np.random.default_rng(7)
+        t_us = np.linspace(1_000, 31_000, 3000).astype(np.int64)
+        events = _events(rng.integers(0, 100, (3000, 2)), t_us)
+        before = events.copy()
+        default = extract_correspondences(events, SENSOR)
+        np.testing.assert_array_equal(events, before)
+        assert (default.t_src, default.t_dst) == pytest.approx((0.005, 0.025))
+        shifted = extract_correspondences(events, SENSOR, t_ref=0)
+        assert (shifted.t_src, shifted.t_dst) == pytest.approx((0.006, 0.026))
+        short = extract_correspondences(events, SENSOR, sub_window_ms=5.0)
+        assert (short.t_src, short.t_dst) == pytest.approx((0.0025, 0.0275))
+        capped = extract_correspondences(events, SENSOR, sub_window_ms=100.0)
+        assert (capped.t_src, capped.t_dst) == pytest.approx((0.0075, 0.0225))
+        for result in (default, shifted, short, capped):
+            assert result.src.shape == result.dst.shape == (len(result), 2)
+            np.testing.assert_allclose(result.dt, result.t_dst - result.t_src)
+
+
+@pytest.mark.realdata
+def test_real_recording_yields_consistent_tracks(real_data):
+    archive = np.load(real_data / "eed_occlusions" / "events.npz")
+    raw = np.empty(archive["t_us"].shape[0], dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "i1")])
+    raw["t"], raw["x"], raw["y"], raw["p"] = archive["t_us"], archive["x"], archive["y"], archive["p"]
+    sensor = (int(archive["height"]), int(archive["width"]))
+    events = as_events(raw, sensor)
+    window = events[(events["t"] >= 120_000) & (events["t"] < 150_000)]  # camera pans left, 30 ms
+    result = extract_correspondences(window, sensor)
+    assert isinstance(result, Correspondences) and len(result) >= 20
+    # Round trips measured here, on images rebuilt from the default thirds of the window.
+    t, third = window["t"], (int(window["t"][-1]) - int(window["t"][0])) / 3.0
+    xy = np.column_stack([window["x"], window["y"]])
+    early = to_uint8(event_image(xy[t < t[0] + third], sensor))
+    late = to_uint8(event_image(xy[t > t[-1] - third], sensor))
+    _, back, _ = track_features(late, early, result.dst)
+    round_trip = np.linalg.norm(back - result.src, axis=1)
+    assert np.median(round_trip) < 0.25 and round_trip.max() <= 1.0 + 1e-3
+    # The camera's ego-motion explains most tracks: trimmed least-squares fits of one similarity motion.
+    model = Affine4(sensor)
+    flow = result.dst - result.src
+    inliers = np.linalg.norm(flow - np.median(flow, axis=0), axis=1) < 1.5
+    for _ in range(3):
+        estimate = model.from_estimate(result.src[inliers], result.dst[inliers], result.dt[inliers])
+        inliers = estimate.residuals(result.src, result.dst, result.dt) < 1.5
+    assert inliers.mean() > 0.7
+
+
+
+def _exact_track(model, params, src, t_src, t_dst, iterations=30):
+    """Where points at ``src`` at ``t_src`` are at ``t_dst`` in a synthetic scene, without approximation.
+
+    A layer's texture point ``u`` is at ``x`` at time ``t`` when ``x - t v(x) = u``; the fixed-point
+    iteration converges because ``t |dv/dx|`` is far below 1. ``model.predict`` would be first order
+    and here off by up to about 2 px, more than the tolerance.
+    """
+    texture = src - t_src * model.velocity(src, params)
+    position = src.copy()
+    for _ in range(iterations):
+        position = texture + t_dst * model.velocity(position, params)
+    return position
+
+
+def _agreement(scene, result, radius=3):
+    """Whether each track ends within 1.5 px of where the true motion of a layer at its start takes it.
+
+    The layers visible within ``radius`` px of a track's start all count: a corner on an occluding
+    silhouette is made of both layers' events, and the label image cannot tell which it follows.
+    """
+    labels = scene.label_image_at(result.t_src)
+    rows, cols = np.rint(result.src[:, 1]).astype(int), np.rint(result.src[:, 0]).astype(int)
+    agree = np.zeros(len(result), dtype=bool)
+    for label, motion in enumerate(scene.motions):
+        near = ndimage.binary_dilation(labels == label, np.ones((2 * radius + 1,) * 2))[rows, cols]
+        truth = _exact_track(motion.model, motion.params, result.src, result.t_src, result.t_dst)
+        agree |= near & (np.linalg.norm(result.dst - truth, axis=1) < 1.5)
+    return agree
+
+
+def test_tracks_follow_true_motions():
+    """Ten synthetic scenes of ~40k events in 30 ms, background and two objects in affine4 motion.
+
+    The speeds are capped at 600 px/s: faster, a 10 ms sub-window smears corners over more than
+    6 px and LK tracks on count images lose their precision.
+    """
+    rates, counts = [], []
+    for seed in range(10):
+        scene = make_scene(
+            SENSOR, 0.03, 2, n_events=40_000, speed_range=(120.0, 600.0), min_relative_speed=120.0, rng=seed
+        )
+        result = extract_correspondences(scene.events, SENSOR, t_ref=scene.t0_us)
+        counts.append(len(result))
+        rates.append(_agreement(scene, result).mean())
+    assert min(counts) >= 40, counts
+    assert np.average(rates, weights=counts) >= 0.9 and min(rates) >= 0.8, np.round(rates, 3)
