@@ -16,9 +16,10 @@ between the two.
 Events are simulated as in ESIM: log-intensity frames are rendered at ``n_time_steps + 1`` times
 (bilinear ``cv2.remap`` of each layer's texture, composited back to front with anti-aliased masks),
 and each pixel emits one event per crossing of its contrast threshold between consecutive frames,
-timestamped by linear interpolation. An event's label is the layer visible at its pixel in the
-frame nearer to its timestamp, as :meth:`SyntheticScene.label_image_at` renders it; the events of an
-object's silhouette, where it covers or uncovers the background, are therefore the object's.
+timestamped by linear interpolation. An event's label is the front-most layer visible at its pixel in
+either frame of its interval (:meth:`SyntheticScene.label_image_at` renders the visible layers): the
+events of an object's silhouette, where it covers *or uncovers* the background, move with the
+occluding contour and are therefore the object's.
 
 The number of events grows with the contrast of the textures, the speeds and ``1 / contrast_threshold``:
 with the defaults, a 30 ms scene on a 180 x 240 sensor has about 35k to 85k events. Pass ``n_events``
@@ -331,6 +332,8 @@ def _threshold_for(layers, depth_order, times, n_events: int, rng) -> float:
 def _simulate(layers, depth_order, times, threshold, jitter, rng):
     """ESIM between consecutive frames: one event per threshold crossing, time linearly interpolated."""
     previous, previous_labels = (a.ravel() for a in _render(layers, depth_order, times[0]))
+    depth = np.zeros(len(layers), dtype=np.int64)
+    depth[np.asarray(depth_order, dtype=np.int64)] = np.arange(1, len(depth_order) + 1)
     thresholds = threshold * np.clip(1.0 + jitter * rng.standard_normal(previous.shape), 0.1, None)
     # A random phase of each pixel's reference level, as a sensor running long before the scene has.
     reference = previous + thresholds * rng.uniform(-1.0, 1.0, previous.shape)
@@ -348,7 +351,8 @@ def _simulate(layers, depth_order, times, threshold, jitter, rng):
             j = np.arange(pixel.size) - np.repeat(np.cumsum(n) - n, n) + 1
             level = reference[pixel] + np.repeat(sign, n) * j * thresholds[pixel]
             fraction = np.clip((level - previous[pixel]) / (frame[pixel] - previous[pixel]), 0.0, 1.0)
-            labels = np.where(fraction < 0.5, previous_labels[pixel], frame_labels[pixel])
+            before, after = previous_labels[pixel], frame_labels[pixel]
+            labels = np.where(depth[after] > depth[before], after, before)
             chunks.append((t_start + fraction * (t_end - t_start), pixel, np.repeat(sign, n), labels))
             reference[pixels] += sign * n * thresholds[pixels]
         previous, previous_labels = frame, frame_labels
@@ -402,7 +406,7 @@ def _make_layer(image, origin, grid, flow, sensor_size) -> _Layer:
 def _background_texture(rng, shape) -> np.ndarray:
     """Piecewise-constant log intensity of rectangles, bars and lines, with strong edges."""
     height, width = shape
-    texture = _smooth_noise(rng, shape, cell=24.0, amplitude=0.05)
+    texture = _smooth_noise(rng, shape, cell=24.0, amplitude=0.01)
     n_shapes = max(4, round(height * width / 650))
     kinds = rng.integers(0, 3, n_shapes)
     levels = rng.uniform(-0.5, 0.5, n_shapes)
@@ -425,7 +429,7 @@ def _object_texture(rng, shape) -> np.ndarray:
     """Blobs of random log intensity on an offset base, unlike the background's rectangles."""
     height, width = shape
     offset = rng.choice([-1, 1]) * rng.uniform(0.3, 0.6)
-    texture = _smooth_noise(rng, shape, cell=8.0, amplitude=0.15) + np.float32(offset)
+    texture = _smooth_noise(rng, shape, cell=8.0, amplitude=0.02) + np.float32(offset)
     n_blobs = max(3, round(height * width / 650))
     centres = np.rint(rng.uniform((0, 0), (width, height), (n_blobs, 2))).astype(int)
     radii = rng.integers(1, 5, n_blobs)
