@@ -53,8 +53,8 @@ _MAX_STEP_PX = 0.5  # largest motion between rendered frames, so that linear int
 # An object covers a pixel where its anti-aliased coverage exceeds this: then the events of its moving
 # silhouette, trailing edge included, are its own, as its motion explains them.
 _COVERED = 0.05
-_MAX_DIVERGENCE = 3.0  # affine4 divergence and rotation, 1/s
-_MAX_ANGULAR = 2.0  # rotation3d angular velocity per axis, rad/s
+_MAX_DIVERGENCE = 1.5  # affine4 divergence and rotation, 1/s
+_MAX_ANGULAR = 1.0  # rotation3d angular velocity per axis, rad/s
 _FULL_SPEED_DURATION = 0.1  # longer scenes slow every motion down, so objects stay in view
 _MASK_SHIFT = 4  # sub-pixel bits of polygon vertices (cv2.fillPoly's shift)
 _MAX_DRAWS = 2000  # motion candidates tried per layer before giving up
@@ -204,12 +204,14 @@ def make_scene(
             than half a pixel between frames.
         t0_us: timestamp of the scene's start in microseconds, non-negative.
         object_size: range of each object's area at mid-scene, as a fraction of the image.
-        speed_range: range of the layers' mean image speeds in px/s; defaults to ``(200, 1500)`` times
-            ``max(H, W) / 240``. Divergence and rotation rates of affine4 are drawn in +-3 1/s and
-            angular velocities of rotation3d in +-2 rad/s. For ``duration`` above 0.1 s every default
+        speed_range: range of the layers' mean image speeds in px/s; defaults to ``(100, 600)`` times
+            ``max(H, W) / 240``, the speeds of hand-held recordings such as EED and EV-IMO (level one's
+            Lucas-Kanade tracks degrade beyond about 600 px/s on a 30 ms window). Divergence and
+            rotation rates of affine4 are drawn in +-1.5 1/s and angular velocities of rotation3d in
+            +-1 rad/s. For ``duration`` above 0.1 s every default
             range is scaled by ``0.1 / duration``, so that objects stay in view.
         min_relative_speed: least mean speed, over an object's pixels, of its motion relative to the
-            background's and to every other object's; defaults to 300 px/s on the same scale.
+            background's and to every other object's; defaults to 150 px/s on the same scale.
         rng: ``numpy.random.Generator`` or seed; the same seed gives the same scene.
 
     Returns:
@@ -236,10 +238,10 @@ def make_scene(
     area_low, area_high = _fraction_range(object_size)
     slow = min(1.0, _FULL_SPEED_DURATION / duration)
     scale = max(height, width) / _REFERENCE_WIDTH * slow
-    speeds = (200.0 * scale, 1500.0 * scale) if speed_range is None else _speed_range(speed_range)
+    speeds = (100.0 * scale, 600.0 * scale) if speed_range is None else _speed_range(speed_range)
     if min_relative_speed is not None:
         min_relative_speed = _non_negative(min_relative_speed, "min_relative_speed")
-    min_relative = 300.0 * scale if min_relative_speed is None else min_relative_speed
+    min_relative = 150.0 * scale if min_relative_speed is None else min_relative_speed
     rng = np.random.default_rng(rng)
 
     grid = np.stack(np.meshgrid(np.arange(width), np.arange(height)), axis=-1).reshape(-1, 2).astype(float)
