@@ -1,0 +1,34 @@
+"""Level two (torch): images of warped events, contrast maximisation and graph-cut event clustering."""
+
+from evseg_torch.level_two.contrast import (
+    CONTRAST_OBJECTIVES,
+    ContrastLoss,
+    ContrastMaximization,
+    contrast_loss,
+    image_variance,
+    normalized_variance,
+)
+from evseg_torch.level_two.data_term import DataCost, data_cost, sample_bilinear
+from evseg_torch.level_two.graph import event_graph, pixel_adjacency
+from evseg_torch.level_two.iwe import ImageOfWarpedEvents, splat_events, warp_events, warped_iwe
+from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter, LevelTwoResult
+
+__all__ = [
+    "CONTRAST_OBJECTIVES",
+    "ContrastLoss",
+    "ContrastMaximization",
+    "DataCost",
+    "GraphCutContrastSegmenter",
+    "ImageOfWarpedEvents",
+    "LevelTwoResult",
+    "contrast_loss",
+    "data_cost",
+    "event_graph",
+    "image_variance",
+    "normalized_variance",
+    "pixel_adjacency",
+    "sample_bilinear",
+    "splat_events",
+    "warp_events",
+    "warped_iwe",
+]

@@ -16,7 +16,7 @@ torch-free.
 Parameters are *rates per second* in pixel units, with coordinates centred on the principal point
 (image centre by default); each model documents its parameters and converts to and from the paper's
 convention. For optimisers, :meth:`MotionModel.displacement_scale` gives per-parameter scales that
-turn parameters into pixels of displacement over a window, which conditions them alike.
+turn parameters (by multiplication) into pixels of displacement over a window, which conditions them alike.
 """
 
 from __future__ import annotations
@@ -109,7 +109,8 @@ class MotionModel(ABC):
     @abstractmethod
     def displacement_scale(self, duration: float) -> np.ndarray:
         """Pixels of displacement over ``duration`` seconds caused by a unit of each parameter, at a
-        typical image radius; divide parameters by it to condition an optimiser. :math:`(P,)`."""
+        typical image radius, :math:`(P,)`. Parameters times this scale are displacements in pixels,
+        alike in magnitude: the units in which optimisers are conditioned."""
 
     @abstractmethod
     def to_paper(self, params: np.ndarray) -> np.ndarray:

@@ -1,0 +1,92 @@
+"""Benchmark level two per window: graph build, data term, α-expansion and refits.
+
+Windows are 30 ms synthetic scenes (``evseg_torch.synthetic.make_scene``) of about ``--events`` events on a
+180 x 240 sensor with ``--objects`` moving objects, affine4 motions. The pool is the true models perturbed by
+about a pixel of displacement plus ``--spurious`` random models (3-4 models in all by default), as level one
+would hand it over. Prints, per stage, the median over windows and repeats of the time per window (summed
+over the outer iterations), the median number of outer iterations, the graph's size, and
+``torch.get_num_threads()``.
+
+    .venv/bin/python benchmarks/bench_level_two.py [--events 30000 --windows 3 --repeats 2 --threads 2]
+"""
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from evseg_torch.events import to_torch
+from evseg_torch.level_two.data_term import data_cost
+from evseg_torch.level_two.graph import event_graph
+from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
+from evseg_torch.synthetic import make_scene
+
+
+def make_window(n_events, n_objects, n_spurious, seed):
+    scene = make_scene((180, 240), duration=0.03, n_objects=n_objects, n_events=n_events, rng=seed)
+    model = scene.motions[0].model
+    truth = np.stack([motion.params for motion in scene.motions])
+    rng = np.random.default_rng(seed)
+    init = truth + rng.normal(0, 1.0, truth.shape) / model.displacement_scale(0.03)
+    spurious = rng.normal(0, 1, (n_spurious, truth.shape[1])) * np.array([600.0, 600.0, 3.0, 3.0])
+    return scene, model, torch.as_tensor(np.concatenate([init, spurious]), dtype=torch.float32)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--events", type=int, default=30_000)
+    parser.add_argument("--objects", type=int, default=2)
+    parser.add_argument("--spurious", type=int, default=1)
+    parser.add_argument("--windows", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    parser.add_argument("--max-iter", type=int, default=10, help="refit iterations (L-BFGS)")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device cpu")
+
+    stages = ("graph", "data_term", "labelling", "refit", "images")
+    per_stage = {name: [] for name in stages}
+    totals, rounds, graph_only, cost_only = [], [], [], []
+    for window in range(args.windows):
+        scene, model, pool = make_window(args.events, args.objects, args.spurious, seed=window)
+        events = to_torch(scene.events)
+        segmenter = GraphCutContrastSegmenter(model, (180, 240), max_iter=args.max_iter)
+        edges, weights = event_graph(events)
+        print(
+            f"window {window}: N={len(events)} K={pool.shape[0]} edges={len(edges)} "
+            f"(weight sum {weights.sum():.0f}, {len(edges) / len(events):.2f} edges per event)"
+        )
+        segmenter(events, pool)  # warm-up
+        for _ in range(args.repeats):
+            start = time.perf_counter()
+            result = segmenter(events, pool)
+            totals.append(1e3 * (time.perf_counter() - start))
+            rounds.append(len(result.energy_history))
+            for name in stages:
+                per_stage[name].append(result.timings_ms[name])
+            start = time.perf_counter()
+            event_graph(events)
+            graph_only.append(1e3 * (time.perf_counter() - start))
+            start = time.perf_counter()
+            with torch.no_grad():
+                data_cost(model, events, pool)
+            cost_only.append(1e3 * (time.perf_counter() - start))
+        print(
+            f"  final models {result.params.shape[0]}, energies {[round(e) for e in result.energy_history]}"
+        )
+
+    print(f"median per window over {len(totals)} runs (ms), median outer rounds {np.median(rounds):.0f}:")
+    for name in stages:
+        print(f"  {name:<10} {np.median(per_stage[name]):8.1f}")
+    print(f"  {'total':<10} {np.median(totals):8.1f}")
+    print(
+        f"one event_graph call: {np.median(graph_only):.1f} ms; one data_cost call (K={pool.shape[0]}): "
+        f"{np.median(cost_only):.1f} ms"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,534 @@
+r"""Contrast objectives of images of warped events, and contrast maximisation (CMax) per cluster.
+
+**Losses are minimised**: every loss here is the *negative* contrast, so a sharper image of warped
+events gives a lower loss.
+
+Objectives (:data:`CONTRAST_OBJECTIVES`) map an IWE :math:`(..., H, W)` and a reference IWE (the same
+events, unwarped) to a contrast :math:`(...)`:
+
+* ``"variance"``: the variance of the image over all pixels (EMSGC, Gallego et al. 2018);
+* ``"normalized_variance"``: that variance divided by the reference's (Stoffregen et al. 2020), so
+  contrasts of clusters of different sizes are comparable.
+
+**Event collapse.** Warps that can contract (the 4-DOF similarity's divergence, rotation's
+perspective terms) raise the variance just by packing the same events into less area, so plain CMax
+is biased towards contraction and can collapse the events onto a few pixels (Shiba et al., Sensors
+2022). The guard is model-agnostic: each event's vote is weighted by the area element
+``a_k = det(dx'/dx)`` of the warp at that event, raised to the power ``collapse_weight`` (γ). Shrinking
+a set of thin edges by an area factor ``a`` multiplies the energy of their image by ``a^(-1/2)``, a
+dense texture's by ``a^(-1)``; weights ``a^γ`` scale it by ``a^(2γ)``, so γ = 1/4 neutralises edges
+and γ = 1/2 dense texture. The default 3/8 lies between; on synthetic edge scenes with 4-DOF motion it
+cuts the contraction bias of the plain objective from 10% of the displacement (or total collapse on
+dense texture) to 1–4%. Under a total collapse (``a -> 0``) the weights vanish, so collapse never
+pays. Translations have ``a = 1`` and are unaffected. A penalty on the spread of the warped events
+would misfire on legitimate fits: warping a small object that moved far within the window shrinks its
+streak to a spot; the area element compares each event's neighbourhood at one time, so it measures
+contraction and not motion blur.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from evseg_torch.errors import ConfigError, ShapeError
+from evseg_torch.events import EventBatch
+from evseg_torch.level_two.iwe import _check_points, _check_sensor_size, splat_events
+from evseg_torch.motion import MotionModel
+
+DEFAULT_COLLAPSE_WEIGHT = 0.375
+"""Default exponent γ of the area-element weights of the event-collapse guard (module docstring)."""
+
+_MIN_AREA = 1e-6  # folded warps (a <= 0) keep a tiny weight and a finite gradient
+
+
+def image_variance(iwe: Tensor, reference: Tensor | None = None) -> Tensor:
+    r"""Variance of an image over its pixels, :math:`\frac{1}{|\Omega|}\sum_x (H(x) - \bar H)^2`.
+
+    Args:
+        iwe: :math:`(..., H, W)`.
+        reference: unused; accepted so that every objective in :data:`CONTRAST_OBJECTIVES` is called alike.
+
+    Returns:
+        :math:`(...)`.
+
+    Examples:
+        >>> image_variance(torch.rand(3, 8, 8)).shape
+        torch.Size([3])
+    """
+    _check_image(iwe, "iwe")
+    return iwe.flatten(-2).var(dim=-1, correction=0)
+
+
+def normalized_variance(iwe: Tensor, reference: Tensor) -> Tensor:
+    r"""Variance of ``iwe`` relative to that of ``reference``, Stoffregen et al.'s flow warp loss.
+
+    Args:
+        iwe: :math:`(..., H, W)`, the image of warped events.
+        reference: :math:`(..., H, W)`, broadcastable, normally the image of the same events unwarped.
+
+    Returns:
+        :math:`(...)`; 1 means no sharper than the reference. An empty reference gives NaN.
+
+    Examples:
+        >>> normalized_variance(torch.rand(3, 8, 8), torch.rand(8, 8)).shape
+        torch.Size([3])
+    """
+    _check_image(reference, "reference")
+    return image_variance(iwe) / image_variance(reference)
+
+
+CONTRAST_OBJECTIVES: dict[str, Callable[[Tensor, Tensor | None], Tensor]] = {
+    "variance": image_variance,
+    "normalized_variance": normalized_variance,
+}
+"""Contrast objectives by name; each maps ``(iwe, reference)`` to a contrast to be maximised."""
+
+_USES_REFERENCE = frozenset({"normalized_variance"})
+
+
+def contrast_loss(
+    model: MotionModel,
+    events: EventBatch,
+    params: Tensor,
+    weights: Tensor | None = None,
+    *,
+    sensor_size: tuple[int, int] | None = None,
+    objective: str = "variance",
+    sigma: float = 1.0,
+    collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
+    reference: Tensor | None = None,
+) -> Tensor:
+    r"""Per-cluster negative contrast of the image of each cluster's own warped events.
+
+    Cluster ``k``'s events are all events weighted by ``weights[k]`` (hard 0/1 labels or soft
+    memberships), warped with ``params[k]``; with the collapse guard (module docstring) each vote is
+    further weighted by the warp's area element to the power ``collapse_weight``.
+
+    Args:
+        model: the motion model.
+        events: ``xy`` :math:`(N, 2)` and ``t`` :math:`(N,)` shared by every cluster, or each cluster's
+            own (padded) events ``xy`` :math:`(K, N, 2)` and ``t`` :math:`(K, N)`.
+        params: :math:`(K, P)` in the model's units.
+        weights: :math:`(K, N)` or :math:`(N,)`; ``None`` means every event counts once in every cluster.
+        sensor_size: ``(H, W)``; defaults to ``model.sensor_size``.
+        objective: a key of :data:`CONTRAST_OBJECTIVES`.
+        sigma: Gaussian blur of the IWEs in pixels (EMSGC: 1).
+        collapse_weight: exponent γ of the event-collapse guard's area weights; 0 switches the guard
+            off, leaving EMSGC's plain objective.
+        reference: the reference IWEs for ``"normalized_variance"`` if already computed (they do not
+            depend on ``params``), :math:`(K, H, W)` or :math:`(H, W)`; computed when ``None``.
+
+    Returns:
+        :math:`(K,)`, differentiable with respect to ``params``, ``weights`` and ``events.xy``.
+
+    Raises:
+        ConfigError: for an unknown objective or a negative ``collapse_weight``.
+        ShapeError: if the shapes do not fit together.
+
+    Examples:
+        >>> from evseg_torch.motion import Affine4
+        >>> events = EventBatch(torch.rand(50, 2) * 7, torch.rand(50) * 0.01, torch.ones(50))
+        >>> contrast_loss(Affine4((8, 8)), events, torch.zeros(3, 4)).shape
+        torch.Size([3])
+    """
+    contrast_fn = _objective(objective)
+    if not collapse_weight >= 0:
+        raise ConfigError(f"collapse_weight must be >= 0, got {collapse_weight}")
+    sensor_size = sensor_size or model.sensor_size
+    if params.ndim != 2:
+        raise ShapeError(f"params must be (K, P), got {tuple(params.shape)}")
+    if weights is not None and weights.shape[-1:] != events.xy.shape[-2:-1]:
+        raise ShapeError(
+            f"weights must be (K, N) or (N,) with N = {events.xy.shape[-2]}, got {tuple(weights.shape)}"
+        )
+    if objective in _USES_REFERENCE and reference is None:
+        reference = splat_events(events.xy, sensor_size, weights, sigma)
+    warp = _LinearWarp.build(model, events, with_area=collapse_weight > 0)
+    return _contrast_loss(warp, params, weights, sensor_size, contrast_fn, sigma, collapse_weight, reference)
+
+
+class _LinearWarp(NamedTuple):
+    """The warp of fixed events as a linear map of the parameters (``v = J(x) params``): built once,
+    it turns every evaluation of an optimiser into a few multiply-adds.
+
+    ``operator`` is ``t J(x)`` and ``step_x``, ``step_y`` are ``t (J(x + e) - J(x))`` for one-pixel steps
+    ``e`` (for the area element), all stored parameter-first, :math:`(P, ..., N, 2)`.
+    """
+
+    xy: Tensor
+    operator: Tensor
+    step_x: Tensor | None
+    step_y: Tensor | None
+
+    @classmethod
+    def build(cls, model: MotionModel, events: EventBatch, with_area: bool = True) -> _LinearWarp:
+        _check_points(events.xy, "events.xy")
+        if events.t.shape != events.xy.shape[:-1]:
+            raise ShapeError(
+                f"events.t must have shape {tuple(events.xy.shape[:-1])} to match events.xy, "
+                f"got {tuple(events.t.shape)}"
+            )
+        t = events.t[..., None, None]
+        jacobian = model.jacobian(events.xy)
+        operator = _parameter_first(t * jacobian)
+        if not with_area:
+            return cls(events.xy, operator, None, None)
+        unit = torch.eye(2, dtype=events.xy.dtype, device=events.xy.device)
+        step_x, step_y = (_parameter_first(t * (model.jacobian(events.xy + e) - jacobian)) for e in unit)
+        return cls(events.xy, operator, step_x, step_y)
+
+    def warped(self, params: Tensor) -> Tensor:
+        return self.xy - _apply(self.operator, params)
+
+    def area(self, params: Tensor) -> Tensor:
+        dx, dy = _apply(self.step_x, params), _apply(self.step_y, params)
+        return (1 - dx[..., 0]) * (1 - dy[..., 1]) - dx[..., 1] * dy[..., 0]
+
+
+def _apply(operator: Tensor, params: Tensor) -> Tensor:
+    """Per-event ``operator @ params``: :math:`(P, ..., N, 2)`, :math:`(..., P)` -> :math:`(..., N, 2)`."""
+    if params.ndim == 0 or params.shape[-1] != operator.shape[0]:
+        raise ShapeError(f"params must be (..., {operator.shape[0]}), got {tuple(params.shape)}")
+    # A sum over the few parameters of contiguous slices: 3x faster than matmul/einsum, which run
+    # one tiny product per event or per cluster.
+    product = operator[0] * params[..., 0, None, None]
+    for index in range(1, operator.shape[0]):
+        product = torch.addcmul(product, operator[index], params[..., index, None, None])
+    return product
+
+
+def _parameter_first(operator: Tensor) -> Tensor:
+    return operator.movedim(-1, 0).contiguous()
+
+
+def _contrast_loss(
+    warp: _LinearWarp,
+    params: Tensor,
+    weights: Tensor | None,
+    sensor_size: tuple[int, int],
+    contrast_fn: Callable[[Tensor, Tensor | None], Tensor],
+    sigma: float,
+    collapse_weight: float,
+    reference: Tensor | None,
+) -> Tensor:
+    if collapse_weight > 0:
+        votes = warp.area(params).clamp_min(_MIN_AREA) ** collapse_weight
+        weights = votes if weights is None else votes * weights
+    return -contrast_fn(splat_events(warp.warped(params), sensor_size, weights, sigma), reference)
+
+
+def warp_area_element(model: MotionModel, events: EventBatch, params: Tensor) -> Tensor:
+    r"""Area element ``det(dx'/dx)`` of the warp at each event: 1 keeps areas, near 0 collapses them.
+
+    The Jacobian of the warp is taken by forward differences of one pixel, exact for velocity fields
+    that are affine in ``x`` and accurate to O(t |d²v/dx²|) otherwise. Like
+    :func:`~evseg_torch.level_two.iwe.warp_events`, it relies on the models' ``v(x) = J(x) params``.
+
+    Args:
+        model: the motion model.
+        events: as in :func:`contrast_loss`.
+        params: :math:`(K, P)`.
+
+    Returns:
+        :math:`(K, N)`.
+
+    Examples:
+        >>> from evseg_torch.motion import Affine4
+        >>> events = EventBatch(torch.rand(2, 2) * 7, torch.full((2,), 0.1), torch.ones(2))
+        >>> warp_area_element(Affine4((8, 8)), events, torch.tensor([[0.0, 0.0, 5.0, 0.0]]))
+        tensor([[0.2500, 0.2500]])
+    """
+    return _LinearWarp.build(model, events).area(params)
+
+
+class ContrastLoss(nn.Module):
+    r"""Module form of :func:`contrast_loss`, to train a network through contrast maximisation.
+
+    Args:
+        model: the motion model.
+        sensor_size: ``(H, W)``; defaults to ``model.sensor_size``.
+        objective: a key of :data:`CONTRAST_OBJECTIVES`.
+        sigma: Gaussian blur of the IWEs in pixels.
+        collapse_weight: exponent γ of the event-collapse guard; 0 switches it off.
+        reduction: ``"none"``, ``"mean"`` or ``"sum"`` over all clusters (and windows).
+
+    Shape:
+        - One window: ``events`` an :class:`EventBatch` of N events, ``params`` :math:`(K, P)`,
+          ``weights`` :math:`(K, N)`, :math:`(N,)` or ``None``; unreduced output :math:`(K,)`.
+        - A batch of B windows: ``events`` a sequence of B :class:`EventBatch` (their event counts may
+          differ), ``params`` :math:`(B, K, P)`, ``weights`` ``None`` or a sequence of B per-window
+          weights; unreduced output :math:`(B, K)`. Windows are evaluated one after the other.
+        - Reduced output: a scalar.
+
+    Examples:
+        >>> from evseg_torch.motion import Translation
+        >>> events = EventBatch(torch.rand(50, 2) * 7, torch.rand(50) * 0.01, torch.ones(50))
+        >>> loss = ContrastLoss(Translation((8, 8)))
+        >>> loss([events, events], torch.zeros(2, 3, 2)).shape
+        torch.Size([])
+    """
+
+    def __init__(
+        self,
+        model: MotionModel,
+        sensor_size: tuple[int, int] | None = None,
+        *,
+        objective: str = "variance",
+        sigma: float = 1.0,
+        collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
+        reduction: str = "mean",
+    ) -> None:
+        super().__init__()
+        _objective(objective)
+        if reduction not in ("none", "mean", "sum"):
+            raise ConfigError(f"reduction must be 'none', 'mean' or 'sum', got {reduction!r}")
+        self.model = model
+        self.sensor_size = _check_sensor_size(sensor_size or model.sensor_size)
+        self.objective = objective
+        self.sigma = float(sigma)
+        self.collapse_weight = float(collapse_weight)
+        self.reduction = reduction
+
+    def forward(
+        self,
+        events: EventBatch | Sequence[EventBatch],
+        params: Tensor,
+        weights: Tensor | Sequence[Tensor | None] | None = None,
+    ) -> Tensor:
+        if isinstance(events, EventBatch):
+            loss = self._window(events, params, weights)
+        else:
+            if params.ndim != 3 or params.shape[0] != len(events):
+                raise ShapeError(
+                    f"for a batch of {len(events)} windows params must be (B, K, P) with B = {len(events)}, "
+                    f"got {tuple(params.shape)}"
+                )
+            if weights is None:
+                weights = [None] * len(events)
+            if len(weights) != len(events):
+                raise ShapeError(
+                    f"weights must hold one entry per window ({len(events)}), got {len(weights)}"
+                )
+            loss = torch.stack(
+                [self._window(*window) for window in zip(events, params, weights, strict=True)]
+            )
+        if self.reduction == "mean":
+            return loss.mean()
+        if self.reduction == "sum":
+            return loss.sum()
+        return loss
+
+    def _window(self, events: EventBatch, params: Tensor, weights: Tensor | None) -> Tensor:
+        return contrast_loss(
+            self.model,
+            events,
+            params,
+            weights,
+            sensor_size=self.sensor_size,
+            objective=self.objective,
+            sigma=self.sigma,
+            collapse_weight=self.collapse_weight,
+        )
+
+    def extra_repr(self) -> str:
+        return (
+            f"model={self.model.name}, sensor_size={self.sensor_size}, objective={self.objective!r}, "
+            f"sigma={self.sigma}, collapse_weight={self.collapse_weight}, reduction={self.reduction!r}"
+        )
+
+
+class ContrastMaximization(nn.Module):
+    r"""Refine the motion parameters of K clusters at once by contrast maximisation.
+
+    Each cluster's parameters maximise the contrast of the image of its own (weighted) events, as in
+    EMSGC's model refit, but with exact gradients by autograd. All clusters are fitted together as
+    one :math:`(K, P)` parameter minimising the sum of their losses; the clusters are independent, so
+    this is K separate fits sharing one optimiser. For conditioning, the optimiser works in pixels of
+    displacement over the window (parameters times ``model.displacement_scale(duration)``), and
+    each cluster's loss is divided by its magnitude at the start, so that every cluster weighs alike
+    in the sum. With ``weights``, each cluster's events of non-zero weight are gathered first, so a
+    fit costs one pass over the window's events, not K. The warp's linear map of the parameters is
+    built once per fit. Gradients are enabled inside, so a caller may run under ``torch.no_grad()``.
+
+    On synthetic edges from 30% off, fits land within 0.5–1% (translation, rotation) and 1–4%
+    (4-DOF) of the displacement over the window; what remains is the bias of the objective itself
+    (pixel-grid pull of bilinear voting, residual contraction bias), not of the optimiser.
+
+    Args:
+        model: the motion model.
+        sensor_size: ``(H, W)``; defaults to ``model.sensor_size``.
+        objective: a key of :data:`CONTRAST_OBJECTIVES`.
+        optimizer: ``"lbfgs"`` (L-BFGS with strong-Wolfe line search) or ``"adam"``.
+        max_iter: L-BFGS iterations, or Adam steps.
+        lr: step size in conditioned units (pixels); ``None`` means 1 for L-BFGS, 0.1 for Adam.
+        sigma: Gaussian blur of the IWEs in pixels (EMSGC: 1).
+        collapse_weight: exponent γ of the event-collapse guard; 0 switches it off.
+        tol: stop when the summed normalised loss changes by less than this, or (L-BFGS) when the
+            step or the gradient is smaller than this in conditioned units.
+
+    Shape:
+        - Input: ``events`` an :class:`EventBatch` of N events, ``init_params`` :math:`(K, P)`,
+          ``weights`` :math:`(K, N)` or ``None`` (every cluster holds all events).
+        - Output: refined parameters :math:`(K, P)` in the model's units, detached.
+
+    Examples:
+        >>> from evseg_torch.motion import Translation
+        >>> events = EventBatch(torch.rand(50, 2) * 7, torch.rand(50) * 0.01, torch.ones(50))
+        >>> ContrastMaximization(Translation((8, 8)), max_iter=2)(events, torch.zeros(3, 2)).shape
+        torch.Size([3, 2])
+    """
+
+    def __init__(
+        self,
+        model: MotionModel,
+        sensor_size: tuple[int, int] | None = None,
+        *,
+        objective: str = "variance",
+        optimizer: str = "lbfgs",
+        max_iter: int = 20,
+        lr: float | None = None,
+        sigma: float = 1.0,
+        collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
+        tol: float = 1e-6,
+    ) -> None:
+        super().__init__()
+        _objective(objective)
+        if optimizer not in ("lbfgs", "adam"):
+            raise ConfigError(f"optimizer must be 'lbfgs' or 'adam', got {optimizer!r}")
+        if int(max_iter) < 1:
+            raise ConfigError(f"max_iter must be >= 1, got {max_iter}")
+        if lr is not None and not lr > 0:
+            raise ConfigError(f"lr must be > 0, got {lr}")
+        if not collapse_weight >= 0:
+            raise ConfigError(f"collapse_weight must be >= 0, got {collapse_weight}")
+        self.model = model
+        self.sensor_size = _check_sensor_size(sensor_size or model.sensor_size)
+        self.objective = objective
+        self.optimizer = optimizer
+        self.max_iter = int(max_iter)
+        self.lr = float(lr) if lr is not None else (1.0 if optimizer == "lbfgs" else 0.1)
+        self.sigma = float(sigma)
+        self.collapse_weight = float(collapse_weight)
+        self.tol = float(tol)
+
+    def forward(self, events: EventBatch, init_params: Tensor, weights: Tensor | None = None) -> Tensor:
+        n_events = events.xy.shape[0]
+        if events.xy.ndim != 2 or events.xy.shape[1] != 2 or events.t.shape != (n_events,):
+            raise ShapeError(
+                "events must hold xy (N, 2) and t (N,), "
+                f"got {tuple(events.xy.shape)} and {tuple(events.t.shape)}"
+            )
+        if init_params.ndim != 2 or init_params.shape[1] != self.model.n_params:
+            raise ShapeError(
+                f"init_params must be (K, {self.model.n_params}) for the {self.model.name} model, "
+                f"got {tuple(init_params.shape)}"
+            )
+        if weights is not None and weights.shape != (init_params.shape[0], n_events):
+            raise ShapeError(
+                f"weights must be (K, N) = {(init_params.shape[0], n_events)}, got {tuple(weights.shape)}"
+            )
+        duration = float(events.t.abs().max()) if n_events else 0.0
+        if duration == 0.0 or init_params.shape[0] == 0:
+            return init_params.detach().clone()
+        if weights is not None:
+            events, weights = _gather_members(events, weights)
+        scale = torch.as_tensor(
+            self.model.displacement_scale(duration), dtype=init_params.dtype, device=init_params.device
+        )
+        with torch.enable_grad():
+            fitted = self._fit(events, init_params.detach() * scale, weights, scale)
+        refined = fitted / scale
+        return torch.where(torch.isfinite(refined).all(dim=1, keepdim=True), refined, init_params.detach())
+
+    def _fit(self, events: EventBatch, start: Tensor, weights: Tensor | None, scale: Tensor) -> Tensor:
+        reference = None
+        if self.objective in _USES_REFERENCE:
+            reference = splat_events(events.xy, self.sensor_size, weights, self.sigma).detach()
+        warp = _LinearWarp.build(self.model, events, with_area=self.collapse_weight > 0)
+        contrast_fn = CONTRAST_OBJECTIVES[self.objective]
+
+        def losses(conditioned: Tensor) -> Tensor:
+            return _contrast_loss(
+                warp,
+                conditioned / scale,
+                weights,
+                self.sensor_size,
+                contrast_fn,
+                self.sigma,
+                self.collapse_weight,
+                reference,
+            )
+
+        with torch.no_grad():
+            norm = losses(start).abs()
+        norm = torch.where(norm > 0, norm, torch.ones_like(norm))
+        conditioned = nn.Parameter(start.clone())
+
+        def closure() -> Tensor:
+            optimizer.zero_grad()
+            loss = (losses(conditioned) / norm).sum()
+            loss.backward()
+            return loss
+
+        if self.optimizer == "lbfgs":
+            optimizer = torch.optim.LBFGS(
+                [conditioned],
+                lr=self.lr,
+                max_iter=self.max_iter,
+                tolerance_grad=self.tol,
+                tolerance_change=self.tol,
+                line_search_fn="strong_wolfe",
+            )
+            optimizer.step(closure)
+        else:
+            optimizer = torch.optim.Adam([conditioned], lr=self.lr)
+            previous = None
+            for _ in range(self.max_iter):
+                loss = float(optimizer.step(closure).detach())
+                if previous is not None and abs(previous - loss) < self.tol:
+                    break
+                previous = loss
+        return conditioned.detach()
+
+    def extra_repr(self) -> str:
+        return (
+            f"model={self.model.name}, sensor_size={self.sensor_size}, objective={self.objective!r}, "
+            f"optimizer={self.optimizer!r}, max_iter={self.max_iter}, lr={self.lr}, sigma={self.sigma}, "
+            f"collapse_weight={self.collapse_weight}, tol={self.tol}"
+        )
+
+
+def _gather_members(events: EventBatch, weights: Tensor) -> tuple[EventBatch, Tensor]:
+    """Each cluster's events with non-zero weight, padded to the largest cluster with zero weights.
+
+    Warping and splatting then cost one pass over the events in all, not one per cluster.
+    """
+    member = weights != 0
+    rows, cols = member.nonzero(as_tuple=True)  # row-major: each cluster's members in their order
+    counts = member.sum(dim=1)
+    slots = torch.arange(rows.shape[0], device=rows.device) - (torch.cumsum(counts, 0) - counts)[rows]
+    shape = (weights.shape[0], int(counts.max()))
+    order = rows.new_zeros(shape).index_put_((rows, slots), cols)
+    filled = torch.arange(shape[1], device=rows.device) < counts[:, None]
+    padded = torch.where(filled, weights.gather(1, order), 0)
+    return EventBatch(events.xy[order], events.t[order], events.p[order]), padded
+
+
+def _objective(name: str) -> Callable[[Tensor, Tensor | None], Tensor]:
+    try:
+        return CONTRAST_OBJECTIVES[name]
+    except KeyError:
+        raise ConfigError(
+            f"unknown contrast objective {name!r}; choose one of {sorted(CONTRAST_OBJECTIVES)}"
+        ) from None
+
+
+def _check_image(image: Tensor, name: str) -> None:
+    if not isinstance(image, Tensor):
+        raise ShapeError(f"{name} must be a torch.Tensor, got {type(image).__name__}")
+    if image.ndim < 2:
+        raise ShapeError(f"{name} must have shape (..., H, W), got {tuple(image.shape)}")

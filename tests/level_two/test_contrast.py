@@ -1,0 +1,244 @@
+import numpy as np
+import pytest
+import torch
+
+from evseg_torch.errors import ConfigError, ShapeError
+from evseg_torch.events import EventBatch
+from evseg_torch.level_two.contrast import (
+    CONTRAST_OBJECTIVES,
+    ContrastLoss,
+    ContrastMaximization,
+    contrast_loss,
+    image_variance,
+    normalized_variance,
+    warp_area_element,
+)
+from evseg_torch.level_two.iwe import splat_events
+from evseg_torch.motion import Affine4, Rotation3D, Translation
+from tests.level_two._events import displacement_error, edge_points, moving_events
+
+SIZE = (96, 128)
+DURATION = 0.03
+# Displacements over the window of about 20 px: 2% is 0.4 px.
+TRUTH = {
+    "translation": (Translation(SIZE), [600.0, -400.0]),
+    "affine4": (Affine4(SIZE), [600.0, -400.0, 2.0, 3.0]),
+    "rotation3d": (Rotation3D(SIZE), [1.5, -2.5, 6.0]),
+}
+SMALL = [Translation((8, 8)), Affine4((8, 8)), Rotation3D((8, 8))]
+
+
+def _small_events(n=20, seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    xy = 2.0 + torch.rand(n, 2, generator=generator, dtype=torch.float64) * 3.0
+    t = torch.rand(n, generator=generator, dtype=torch.float64) * 0.05
+    return EventBatch(xy, t, torch.ones(n, dtype=torch.float64))
+
+
+def _scene(name, seed=0, integer=True, n_points=6000, n_segments=20, dtype=torch.float64, device="cpu"):
+    model, truth = TRUTH[name]
+    rng = np.random.default_rng(seed)
+    points = edge_points(SIZE, n_points, rng, n_segments=n_segments)
+    events = moving_events(
+        model, truth, points, DURATION, rng, noise=0.2, integer=integer, dtype=dtype, device=device
+    )
+    start = np.asarray(truth) * (1 + 0.3 * rng.choice([-1.0, 1.0], size=len(truth)))
+    return model, np.asarray(truth), events, start
+
+
+class TestObjectives:
+    def test_smoke(self, device, dtype):
+        image = torch.rand(3, 8, 8, device=device, dtype=dtype)
+        torch.testing.assert_close(image_variance(image), image.flatten(1).var(dim=1, unbiased=False))
+        torch.testing.assert_close(
+            normalized_variance(image, image), torch.ones(3, device=device, dtype=dtype)
+        )
+
+    def test_cardinality(self):
+        assert image_variance(torch.rand(2, 3, 8, 8)).shape == (2, 3)
+        assert normalized_variance(torch.rand(2, 3, 8, 8), torch.rand(3, 8, 8)).shape == (2, 3)
+        assert set(CONTRAST_OBJECTIVES) == {"variance", "normalized_variance"}
+
+    def test_exception(self):
+        with pytest.raises(ShapeError, match=r"iwe must have shape \(\.\.\., H, W\)"):
+            image_variance(torch.rand(5))
+        with pytest.raises(ShapeError, match=r"reference must be a torch\.Tensor"):
+            normalized_variance(torch.rand(8, 8), None)
+
+    def test_sharper_image_has_higher_variance(self):
+        stacked = splat_events(torch.full((50, 2), 4.0), (9, 9))
+        spread = splat_events(torch.rand(50, 2) * 8, (9, 9))
+        assert image_variance(stacked) > image_variance(spread)
+        assert normalized_variance(stacked, spread) > 1
+
+
+class TestContrastLoss:
+    def test_smoke(self, device, dtype):
+        events = _small_events().to(device=device, dtype=dtype)
+        loss = contrast_loss(Affine4((8, 8)), events, torch.zeros(2, 4, device=device, dtype=dtype))
+        assert loss.dtype == dtype and torch.all(loss < 0)
+
+    @pytest.mark.parametrize("objective", sorted(CONTRAST_OBJECTIVES))
+    def test_cardinality(self, objective):
+        events, model = _small_events(), Affine4((8, 8))
+        params = torch.zeros(3, 4, dtype=torch.float64)
+        assert contrast_loss(model, events, params, objective=objective).shape == (3,)
+        weights = torch.rand(3, 20, dtype=torch.float64)
+        assert contrast_loss(model, events, params, weights, objective=objective).shape == (3,)
+
+    def test_exception(self):
+        events, model = _small_events(), Affine4((8, 8))
+        with pytest.raises(ConfigError, match="unknown contrast objective 'sharpness'"):
+            contrast_loss(model, events, torch.zeros(1, 4), objective="sharpness")
+        with pytest.raises(ShapeError, match=r"params must be \(K, P\)"):
+            contrast_loss(model, events, torch.zeros(4))
+        with pytest.raises(ShapeError, match=r"params must be \(\.\.\., 4\)"):
+            contrast_loss(model, events, torch.zeros(1, 3, dtype=torch.float64))
+        with pytest.raises(ShapeError, match="weights must be"):
+            contrast_loss(model, events, torch.zeros(1, 4), torch.ones(1, 7))
+        with pytest.raises(ConfigError, match="collapse_weight"):
+            contrast_loss(model, events, torch.zeros(1, 4), collapse_weight=-1.0)
+
+    def test_weights_select_cluster_events(self):
+        events, model = _small_events(40), Affine4((8, 8))
+        params = torch.rand(2, 4, dtype=torch.float64)
+        member = torch.rand(40) < 0.5
+        weights = torch.stack([member, ~member]).double()
+        loss = contrast_loss(model, events, params, weights)
+        for k, mask in enumerate((member, ~member)):
+            own = EventBatch(events.xy[mask], events.t[mask], events.p[mask])
+            torch.testing.assert_close(loss[k], contrast_loss(model, own, params[k : k + 1])[0])
+
+    def test_true_motion_is_sharpest(self):
+        model, truth, events, start = _scene("affine4")
+        loss = contrast_loss(model, events, torch.tensor(np.stack([truth, start, np.zeros(4)])))
+        assert loss[0] < loss[1] and loss[0] < loss[2]
+
+    @pytest.mark.parametrize("model", SMALL, ids=lambda m: m.name)
+    def test_gradcheck(self, model):
+        events = _small_events()
+        params = torch.tensor(np.linspace(0.5, 2.0, model.n_params))[None].repeat(2, 1).requires_grad_()
+        weights = torch.rand(2, 20, dtype=torch.float64, requires_grad=True)
+        assert torch.autograd.gradcheck(
+            lambda p, w: contrast_loss(model, events, p, w, objective="normalized_variance"),
+            (params, weights),
+            fast_mode=True,
+        )
+
+    def test_module(self):
+        events, model = _small_events(), Affine4((8, 8))
+        params = torch.rand(2, 3, 4, dtype=torch.float64)
+        loss = ContrastLoss(model, objective="normalized_variance", reduction="none")
+        batched = loss([events, events], params)
+        assert batched.shape == (2, 3)
+        for b in range(2):
+            torch.testing.assert_close(
+                batched[b], contrast_loss(model, events, params[b], objective="normalized_variance")
+            )
+        mean = ContrastLoss(model)(events, params[0])
+        torch.testing.assert_close(mean, contrast_loss(model, events, params[0]).mean())
+        assert "objective='normalized_variance'" in repr(loss)
+        with pytest.raises(ShapeError, match=r"params must be \(B, K, P\)"):
+            loss([events, events], params[0])
+        with pytest.raises(ConfigError, match="reduction"):
+            ContrastLoss(model, reduction="max")
+
+
+class TestCollapseGuard:
+    def test_area_element(self):
+        events = _small_events()
+        d, r = 4.0, 3.0
+        area = warp_area_element(
+            Affine4((8, 8)), events, torch.tensor([[1.0, 2.0, d, r]], dtype=torch.float64)
+        )
+        torch.testing.assert_close(area[0], (1 - events.t * d) ** 2 + (events.t * r) ** 2)
+        area = warp_area_element(
+            Translation((8, 8)), events, torch.tensor([[50.0, -20.0]], dtype=torch.float64)
+        )
+        torch.testing.assert_close(area, torch.ones_like(area))
+
+    def test_guard_prevents_collapse(self):
+        # Dense texture: plain variance prefers packing events into less area.
+        model, truth, events, _ = _scene("affine4", n_points=8000, n_segments=40, integer=False)
+        start = torch.tensor(truth)[None]
+        true_area = warp_area_element(model, events, start).mean()
+        plain = ContrastMaximization(model, collapse_weight=0.0, max_iter=30)(events, start)
+        guarded = ContrastMaximization(model, max_iter=30)(events, start)
+        assert warp_area_element(model, events, plain).mean() / true_area < 0.95
+        assert displacement_error(model, plain[0], truth, events, DURATION) > 0.1
+        assert abs(warp_area_element(model, events, guarded).mean() / true_area - 1) < 0.01
+        assert displacement_error(model, guarded[0], truth, events, DURATION) < 0.05
+
+
+class TestContrastMaximization:
+    @pytest.mark.parametrize("name", sorted(TRUTH))
+    def test_recovers_motion(self, name, device, dtype):
+        model, truth, events, start = _scene(name, dtype=dtype, device=device)
+        cmax = ContrastMaximization(model, max_iter=30)
+        fitted = cmax(events, torch.tensor(start, dtype=dtype, device=device)[None])
+        assert fitted.shape == (1, model.n_params) and fitted.dtype == dtype
+        assert displacement_error(model, start, truth, events, DURATION) > 0.25
+        assert displacement_error(model, fitted[0], truth, events, DURATION) < 0.02
+
+    @pytest.mark.parametrize(
+        ("name", "bound"), [("translation", 0.02), ("rotation3d", 0.02), ("affine4", 0.04)]
+    )
+    def test_recovers_motion_subpixel_events(self, name, bound):
+        # Off-pixel events expose the pixel grid's pull on bilinear voting, hence affine4's wider bound.
+        model, truth, events, start = _scene(name, integer=False)
+        fitted = ContrastMaximization(model, max_iter=30)(events, torch.tensor(start)[None])
+        assert displacement_error(model, fitted[0], truth, events, DURATION) < bound
+
+    def test_adam(self):
+        model, truth, events, start = _scene("translation")
+        cmax = ContrastMaximization(model, optimizer="adam", max_iter=150, lr=0.2)
+        fitted = cmax(events, torch.tensor(start)[None])
+        assert displacement_error(model, fitted[0], truth, events, DURATION) < 0.02
+
+    def test_clusters_fitted_together(self):
+        # Two objects moving differently: the joint fit of both equals fitting each on its own events.
+        model = Affine4(SIZE)
+        rng = np.random.default_rng(3)
+        truths = np.array([[600.0, -400.0, 2.0, 3.0], [-300.0, 500.0, -2.0, 1.0]])
+        batches = [
+            moving_events(
+                model, truth, edge_points(SIZE, 4000, rng, box=box), DURATION, rng, noise=0.2, integer=True
+            )
+            for truth, box in zip(truths, [(0.05, 0.2, 0.5, 0.8), (0.5, 0.2, 0.95, 0.8)], strict=True)
+        ]
+        events = EventBatch(*(torch.cat(parts) for parts in zip(*batches, strict=True)))
+        labels = torch.cat([torch.full((len(b),), k) for k, b in enumerate(batches)])
+        weights = torch.nn.functional.one_hot(labels, 2).T.double()
+        cmax = ContrastMaximization(model, max_iter=50)
+        with torch.no_grad():  # a segmenter may call the refit under no_grad
+            fitted = cmax(events, torch.tensor(truths * 1.3), weights)
+        for k, own in enumerate(batches):
+            alone = cmax(own, torch.tensor(truths[k : k + 1] * 1.3))[0]
+            assert displacement_error(model, fitted[k], alone.numpy(), own, DURATION) < 0.005
+            assert displacement_error(model, fitted[k], truths[k], own, DURATION) < 0.04
+
+    def test_loss_decreases(self):
+        model, _, events, start = _scene("rotation3d")
+        start = torch.tensor(start)[None]
+        fitted = ContrastMaximization(model, max_iter=5)(events, start)
+        assert contrast_loss(model, events, fitted) < contrast_loss(model, events, start)
+
+    def test_no_time_span_returns_start(self):
+        events = EventBatch(torch.rand(10, 2) * 7, torch.zeros(10), torch.ones(10))
+        start = torch.rand(2, 2)
+        torch.testing.assert_close(ContrastMaximization(Translation((8, 8)))(events, start), start)
+
+    def test_exception(self):
+        model, events = Affine4((8, 8)), _small_events()
+        cmax = ContrastMaximization(model)
+        with pytest.raises(ShapeError, match=r"init_params must be \(K, 4\)"):
+            cmax(events, torch.zeros(4, dtype=torch.float64))
+        with pytest.raises(ShapeError, match=r"weights must be \(K, N\)"):
+            cmax(events, torch.zeros(2, 4, dtype=torch.float64), torch.ones(20, dtype=torch.float64))
+        with pytest.raises(ConfigError, match="optimizer must be 'lbfgs' or 'adam'"):
+            ContrastMaximization(model, optimizer="sgd")
+        with pytest.raises(ConfigError, match="unknown contrast objective"):
+            ContrastMaximization(model, objective="entropy")
+
+    def test_module_repr(self):
+        assert "optimizer='lbfgs'" in repr(ContrastMaximization(Affine4((8, 8))))

@@ -1,0 +1,130 @@
+import pytest
+import torch
+
+from evseg_torch.errors import ShapeError
+from evseg_torch.events import EventBatch
+from evseg_torch.level_two.data_term import DataCost, data_cost, sample_bilinear
+from evseg_torch.level_two.iwe import splat_events, warp_events
+from evseg_torch.motion import Affine4, Translation
+
+
+def _edge_events(count=400, flow=(300.0, -100.0), size=(32, 40), seed=0, dtype=torch.float32):
+    """A vertical line moving with constant flow, sampled on the pixel grid over 20 ms."""
+    generator = torch.Generator().manual_seed(seed)
+    t = torch.sort(torch.rand(count, generator=generator, dtype=torch.float64) * 0.02).values
+    y0 = torch.rand(count, generator=generator, dtype=torch.float64) * (size[0] - 12) + 6
+    x = (12.0 + flow[0] * t).round()
+    y = (y0 + flow[1] * t).round()
+    return EventBatch(torch.stack([x, y], 1).to(dtype), t.to(dtype), torch.ones(count, dtype=dtype))
+
+
+def _reference(model, events, params, size, sigma):
+    """Independent implementation: grid_sample (align_corners=True: pixel centres at integers)."""
+    warped = warp_events(model, events.xy, events.t, params)
+    iwes = splat_events(warped, size, sigma=sigma)
+    negative = 255.0 * (1 - iwes / iwes.max())
+    height, width = size
+    grid = torch.stack([2 * warped[..., 0] / (width - 1) - 1, 2 * warped[..., 1] / (height - 1) - 1], -1)
+    values = torch.nn.functional.grid_sample(negative[:, None], grid[:, None], align_corners=True)[:, 0, 0]
+    x, y = warped[..., 0], warped[..., 1]
+    inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    return torch.where(inside, values, torch.full_like(values, 255.0)).T
+
+
+class TestSampleBilinear:
+    def test_exact_at_pixel_centres(self):
+        image = torch.rand(2, 5, 6)
+        rows, cols = torch.meshgrid(torch.arange(5.0), torch.arange(6.0), indexing="ij")
+        xy = torch.stack([cols.flatten(), rows.flatten()], -1).expand(2, -1, -1)
+        values, inside = sample_bilinear(image, xy)
+        torch.testing.assert_close(values, image.flatten(1))
+        assert inside.all()
+
+    def test_outside(self):
+        values, inside = sample_bilinear(torch.ones(1, 4, 4), torch.tensor([[[-0.1, 1], [1, 3.01], [3, 3]]]))
+        assert inside.tolist() == [[False, False, True]]
+        assert values.tolist() == [[0.0, 0.0, 1.0]]
+
+
+class TestDataCost:
+    def test_cardinality_and_range(self):
+        events = _edge_events()
+        cost = data_cost(Translation((32, 40)), events, torch.randn(5, 2) * 200)
+        assert cost.shape == (400, 5)
+        assert cost.min() >= 0 and cost.max() <= 255
+
+    def test_matches_reference(self, dtype):
+        events = _edge_events(dtype=dtype)
+        model = Affine4((32, 40))
+        params = torch.tensor(
+            [[300.0, -100.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [250.0, -80.0, 2.0, -1.0]], dtype=dtype
+        )
+        expected = _reference(model, events, params, (32, 40), 1.0)
+        torch.testing.assert_close(
+            data_cost(model, events, params, sigma=1.0), expected, atol=1e-3, rtol=1e-4
+        )
+
+    def test_true_model_is_cheapest(self):
+        events = _edge_events()
+        cost = data_cost(
+            Translation((32, 40)), events, torch.tensor([[300.0, -100.0], [0.0, 0.0], [-300.0, 0.0]])
+        )
+        mean = cost.mean(0)
+        assert mean[0] < 0.6 * mean[1] and mean[0] < 0.6 * mean[2]
+        assert (cost.argmin(1) == 0).float().mean() > 0.9
+
+    def test_joint_normalisation(self):
+        # A sharp extra model raises the global maximum, so every other model's costs go up.
+        events = _edge_events()
+        model = Translation((32, 40))
+        blurry = torch.tensor([[0.0, 0.0]])
+        alone = data_cost(model, events, blurry)
+        together = data_cost(model, events, torch.cat([blurry, torch.tensor([[300.0, -100.0]])]))
+        assert alone.min() == 0  # the sharpest pixel of the pool costs nothing
+        assert torch.all(together[:, 0] >= alone[:, 0] - 1e-4)
+        assert together[:, 0].mean() > alone[:, 0].mean() + 10
+
+    def test_single_pixel_is_free(self):
+        events = EventBatch(torch.full((10, 2), 3.0), torch.linspace(0, 0.01, 10), torch.ones(10))
+        cost = data_cost(Translation((8, 8)), events, torch.zeros(1, 2))
+        torch.testing.assert_close(cost, torch.zeros(10, 1))
+
+    def test_outside_costs_255(self):
+        events = EventBatch(torch.tensor([[1.0, 1.0], [5.0, 5.0]]), torch.tensor([0.01, 0.01]), torch.ones(2))
+        cost = data_cost(Translation((8, 8)), events, torch.tensor([[500.0, 0.0]]))  # 5 px to the left
+        assert cost[0, 0] == 255.0 and cost[1, 0] < 255.0
+
+    def test_gradcheck(self):
+        events = _edge_events(count=30, size=(12, 14), dtype=torch.float64)
+        events = EventBatch(events.xy.clamp(0, 10), events.t, events.p)
+        params = torch.tensor([[30.0, -10.0], [5.0, 7.0]], dtype=torch.float64, requires_grad=True)
+        model = Translation((12, 14))
+        assert torch.autograd.gradcheck(lambda p: data_cost(model, events, p), (params,), fast_mode=True)
+
+    def test_module(self):
+        events = _edge_events()
+        model = Translation((32, 40))
+        params = torch.randn(3, 2) * 100
+        torch.testing.assert_close(
+            DataCost(model, sigma=1.0)(events, params), data_cost(model, events, params)
+        )
+        assert "sigma=1.0" in repr(DataCost(model))
+
+    def test_device(self, device):
+        events = _edge_events()
+        params = torch.tensor([[300.0, -100.0], [0.0, 0.0]])
+        expected = data_cost(Translation((32, 40)), events, params)
+        cost = data_cost(Translation((32, 40)), events.to(device), params.to(device))
+        assert cost.device.type == device.type
+        torch.testing.assert_close(cost.cpu(), expected, atol=1e-3, rtol=1e-4)
+
+    def test_exceptions(self):
+        events = _edge_events()
+        with pytest.raises(ShapeError, match=r"\(K, 2\)"):
+            data_cost(Translation((32, 40)), events, torch.zeros(2))
+        with pytest.raises(ShapeError, match=r"\(K, 4\)"):
+            data_cost(Affine4((32, 40)), events, torch.zeros(2, 2))
+        with pytest.raises(ShapeError, match="K >= 1"):
+            data_cost(Translation((32, 40)), events, torch.zeros(0, 2))
+        with pytest.raises(ShapeError, match="images must be"):
+            sample_bilinear(torch.zeros(2, 3, 3), torch.zeros(1, 4, 2))
