@@ -46,19 +46,19 @@ class FeatureConfig:
         max_corners: at most this many Shi-Tomasi corners.
         min_distance: minimum distance between corners in pixels.
         quality_level: corners weaker than this fraction of the strongest response are dropped.
-        blur_sigma: Gaussian smoothing of the event images before the corner response.
+        corner_sigma: Gaussian smoothing of the event images before the corner response, pixels.
         lk_win_size: Lucas-Kanade window side in pixels.
         lk_max_level: pyramid levels of Lucas-Kanade.
         fb_threshold: forward-backward round-trip error above which a track is dropped, pixels.
     """
 
-    sub_window: float = 0.4
-    max_corners: int = 300
-    min_distance: float = 5.0
+    sub_window: float = 1.0 / 3.0
+    max_corners: int = 200
+    min_distance: int = 4
     quality_level: float = 0.05
-    blur_sigma: float = 1.0
-    lk_win_size: int = 15
-    lk_max_level: int = 2
+    corner_sigma: float = 1.0
+    lk_win_size: int = 21
+    lk_max_level: int = 3
     fb_threshold: float = 1.0
 
 
@@ -189,15 +189,23 @@ def replace_config(config: SegmenterConfig, **overrides) -> SegmenterConfig:
 
     A whole section may be replaced too (``level_two=LevelTwoConfig(...)`` or a dict of its fields).
     """
-    sections = {f.name: f.type for f in dataclasses.fields(config) if dataclasses.is_dataclass(getattr(config, f.name))}
+    sections = {
+        f.name: f.type
+        for f in dataclasses.fields(config)
+        if dataclasses.is_dataclass(getattr(config, f.name))
+    }
     top, nested = {}, {name: {} for name in sections}
     for key, value in overrides.items():
         if key in sections:
-            top[key] = value if dataclasses.is_dataclass(value) else config_from_dict(
-                value, type(getattr(config, key)), f"{key}."
+            top[key] = (
+                value
+                if dataclasses.is_dataclass(value)
+                else config_from_dict(value, type(getattr(config, key)), f"{key}.")
             )
             continue
-        owner = next((s for s in sections if key in {f.name for f in dataclasses.fields(getattr(config, s))}), None)
+        owner = next(
+            (s for s in sections if key in {f.name for f in dataclasses.fields(getattr(config, s))}), None
+        )
         if owner is None and key not in {f.name for f in dataclasses.fields(config)}:
             raise ConfigError(f"unknown config key {key!r}")
         if owner is None:
@@ -207,7 +215,9 @@ def replace_config(config: SegmenterConfig, **overrides) -> SegmenterConfig:
     for section, values in nested.items():
         if values:
             current = config_to_dict(top.get(section, getattr(config, section)))
-            top[section] = config_from_dict({**current, **values}, type(getattr(config, section)), f"{section}.")
+            top[section] = config_from_dict(
+                {**current, **values}, type(getattr(config, section)), f"{section}."
+            )
     return dataclasses.replace(config, **top)
 
 

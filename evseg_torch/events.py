@@ -119,9 +119,7 @@ def infer_sensor_size(events: np.ndarray) -> tuple[int, int]:
 
 def to_array(events: np.ndarray) -> np.ndarray:
     """Canonical events as a float64 array :math:`(N, 4)` with columns ``[t_seconds, x, y, p]``."""
-    return np.column_stack(
-        [events["t"] * 1e-6, events["x"], events["y"], events["p"]]
-    ).astype(np.float64)
+    return np.column_stack([events["t"] * 1e-6, events["x"], events["y"], events["p"]]).astype(np.float64)
 
 
 def window_ranges_by_time(
@@ -142,7 +140,10 @@ def window_ranges_by_time(
     Returns:
         int64 array :math:`(M, 2)` of ``[begin, end)`` indices into ``t_us``.
     """
-    window_us, stride_us = _positive_us(window_ms, "window_ms"), _positive_us(stride_ms or window_ms, "stride_ms")
+    window_us, stride_us = (
+        _positive_us(window_ms, "window_ms"),
+        _positive_us(stride_ms or window_ms, "stride_ms"),
+    )
     t_us = np.asarray(t_us)
     if t_us.size == 0:
         return np.zeros((0, 2), dtype=np.int64)
@@ -282,7 +283,9 @@ def to_torch(
 
     dtype = dtype or torch.float32
     if events.dtype != EVENT_DTYPE:
-        raise EventFormatError(f"to_torch expects canonical events of dtype {EVENT_DTYPE}, got {events.dtype}")
+        raise EventFormatError(
+            f"to_torch expects canonical events of dtype {EVENT_DTYPE}, got {events.dtype}"
+        )
     t_ref = int(events["t"][0]) if t_ref_us is None and len(events) else int(t_ref_us or 0)
     t_rel = (events["t"] - t_ref).astype(np.float64) * 1e-6
     xy = np.column_stack([events["x"], events["y"]])
@@ -302,7 +305,9 @@ def _checked_chunks(chunks: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
     last = None
     for chunk in chunks:
         if chunk.dtype != EVENT_DTYPE:
-            raise EventFormatError(f"stream chunks must be canonical events of dtype {EVENT_DTYPE}, got {chunk.dtype}")
+            raise EventFormatError(
+                f"stream chunks must be canonical events of dtype {EVENT_DTYPE}, got {chunk.dtype}"
+            )
         if len(chunk) == 0:
             continue
         if last is not None and chunk["t"][0] < last:
@@ -324,7 +329,8 @@ def _columns(data) -> tuple[np.ndarray, ...]:
         return _structured_columns(data)
     if data.ndim != 2 or data.shape[1] != 4:
         raise EventFormatError(
-            f"events must be an (N, 4) array [t_seconds, x, y, p] or a structured array, got shape {data.shape}"
+            "events must be an (N, 4) array [t_seconds, x, y, p] or a structured array, "
+            f"got shape {data.shape}"
         )
     if not (np.issubdtype(data.dtype, np.floating) or np.issubdtype(data.dtype, np.integer)):
         raise EventFormatError(f"(N, 4) events must be numeric, got dtype {data.dtype}")
@@ -372,7 +378,8 @@ def _pixel_coordinates(values: np.ndarray, name: str) -> np.ndarray:
 def _check_inside(values: np.ndarray, size: int, name: str, size_name: str) -> None:
     if np.any(values >= size):
         raise EventFormatError(
-            f"{name} = {int(values.max())} lies outside the sensor ({size_name} = {size}); check sensor_size (H, W)"
+            f"{name} = {int(values.max())} lies outside the sensor ({size_name} = {size}); "
+            "check sensor_size (H, W)"
         )
 
 

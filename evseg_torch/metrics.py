@@ -52,8 +52,10 @@ def labelling_accuracy(pred: np.ndarray, gt: np.ndarray, ignore: int = -1) -> fl
     if not np.any(keep):
         return float("nan")
     mapping = match_clusters(pred, gt, ignore)
-    mapped = np.array([mapping.get(int(c), ignore - 1) for c in pred[keep]]) if len(mapping) else np.full(
-        int(keep.sum()), ignore - 1
+    mapped = (
+        np.array([mapping.get(int(c), ignore - 1) for c in pred[keep]])
+        if len(mapping)
+        else np.full(int(keep.sum()), ignore - 1)
     )
     return float(np.mean(mapped == gt[keep]))
 

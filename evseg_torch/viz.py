@@ -45,8 +45,10 @@ def count_image(xy: np.ndarray, sensor_size: tuple[int, int]) -> np.ndarray:
     """Events per pixel of rounded positions, :math:`(H, W)` float64; positions outside are dropped."""
     height, width = sensor_size
     col, row, inside = _pixels(xy, sensor_size)
-    return np.bincount(row[inside] * width + col[inside], minlength=height * width).reshape(height, width).astype(
-        np.float64
+    return (
+        np.bincount(row[inside] * width + col[inside], minlength=height * width)
+        .reshape(height, width)
+        .astype(np.float64)
     )
 
 
@@ -74,7 +76,7 @@ def render_labels(xy: np.ndarray, labels: np.ndarray, sensor_size: tuple[int, in
     return image
 
 
-def fig1_figure(segmentation, events_xy: np.ndarray, title: str | None = None, metrics: dict | None = None):
+def fig1_figure(segmentation, title: str | None = None, metrics: dict | None = None):
     """The paper's Fig. 1 panels for one window, as a matplotlib figure.
 
     Panels: (a) raw image of events, (b) feature tracks, (c) feature clusters, (d) the segmented,
@@ -82,18 +84,22 @@ def fig1_figure(segmentation, events_xy: np.ndarray, title: str | None = None, m
 
     Args:
         segmentation: a :class:`~evseg_torch.pipeline.Segmentation`.
-        events_xy: the window's raw event positions, :math:`(N, 2)`.
         title: figure title.
         metrics: optional name → value pairs printed under the title (e.g. accuracy against ground truth).
     """
     plt = _pyplot()
     sensor_size = segmentation.sensor_size
-    raw = render_event_image(events_xy, sensor_size)
+    raw = render_event_image(
+        np.column_stack([segmentation.events["x"], segmentation.events["y"]]), sensor_size
+    )
     tracks = segmentation.feature_tracks
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.6), constrained_layout=True)
     axes[0].imshow(raw)
     axes[0].set_title("(a) raw events")
-    for ax, colour_by_cluster, name in ((axes[1], False, "(b) feature tracks"), (axes[2], True, "(c) feature clusters")):
+    for ax, colour_by_cluster, name in (
+        (axes[1], False, "(b) feature tracks"),
+        (axes[2], True, "(c) feature clusters"),
+    ):
         ax.imshow(raw, alpha=0.5)
         colours = (
             label_colors(segmentation.feature_labels) / 255.0

@@ -53,7 +53,12 @@ def test_flat_overrides():
 
 
 def test_field_names_are_unique_across_sections():
-    names = [key for section in config_to_dict(SegmenterConfig()).values() if isinstance(section, dict) for key in section]
+    names = [
+        key
+        for section in config_to_dict(SegmenterConfig()).values()
+        if isinstance(section, dict)
+        for key in section
+    ]
     assert len(names) == len(set(names))
 
 

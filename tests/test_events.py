@@ -30,7 +30,9 @@ class TestAsEvents:
         assert ev["t"].tolist() == [0, 1000, 2000, 3000, 4000]
         assert ev["p"].tolist() == [-1, 1, -1, 1, -1]
 
-    @pytest.mark.parametrize("polarity", [np.array([0, 1, 1]), np.array([-1, 1, 1]), np.array([False, True, True])])
+    @pytest.mark.parametrize(
+        "polarity", [np.array([0, 1, 1]), np.array([-1, 1, 1]), np.array([False, True, True])]
+    )
     def test_polarity_forms_agree(self, polarity):
         data = np.zeros(3, dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", polarity.dtype)])
         data["t"], data["p"] = [1, 2, 3], polarity
@@ -48,7 +50,7 @@ class TestAsEvents:
     def test_input_not_modified_and_not_returned(self):
         data = _array()
         before = data.copy()
-        out = as_events(data)
+        as_events(data)
         np.testing.assert_array_equal(data, before)
         structured = as_events(data)
         again = as_events(structured)

@@ -8,7 +8,14 @@ from evseg_torch.level_one.gc_ransac import gc_ransac, graph_cut_inliers
 from evseg_torch.level_one.neighborhood import neighborhood_graph
 from evseg_torch.level_one.progressive_x import OUTLIER, ProgressiveXResult, pearl, progressive_x
 
-_FEATURES = {"Correspondences", "Tracks", "detect_corners", "event_image", "extract_correspondences", "track_features"}
+_FEATURES = {
+    "Correspondences",
+    "Tracks",
+    "detect_corners",
+    "event_image",
+    "extract_correspondences",
+    "track_features",
+}
 
 
 def __getattr__(name: str):

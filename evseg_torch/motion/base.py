@@ -179,12 +179,16 @@ class MotionModel(ABC):
         """
         src, dst, dt = self._check_correspondences(src, dst, dt)
         if src.shape[0] < self.min_samples:
-            return FailedEstimation(f"{self.name} needs {self.min_samples} correspondences, got {src.shape[0]}")
+            return FailedEstimation(
+                f"{self.name} needs {self.min_samples} correspondences, got {src.shape[0]}"
+            )
         if weights is not None:
             weights = np.asarray(weights, dtype=np.float64)
             if weights.shape != (src.shape[0],) or np.any(weights < 0) or not np.all(np.isfinite(weights)):
                 raise ModelError(f"weights must be finite, non-negative and of shape ({src.shape[0]},)")
-        params, valid = self.estimate_batch(src[None], dst[None], dt[None], None if weights is None else weights[None])
+        params, valid = self.estimate_batch(
+            src[None], dst[None], dt[None], None if weights is None else weights[None]
+        )
         if not valid[0]:
             return FailedEstimation(f"degenerate correspondences for {self.name}")
         return MotionEstimate(self, params[0])

@@ -44,7 +44,9 @@ class TestWarp:
         centre = np.array([[50.0, 50.0]])
         np.testing.assert_allclose(model.warp(centre, np.array([0.1]), np.array([0, 0, 3.0, 2.0])), centre)
         # Pure rotation rate r moves (60, 50) with velocity (0, 10 r).
-        np.testing.assert_allclose(model.velocity(np.array([[60.0, 50.0]]), np.array([0, 0, 0, 2.0])), [[0, 20]])
+        np.testing.assert_allclose(
+            model.velocity(np.array([[60.0, 50.0]]), np.array([0, 0, 0, 2.0])), [[0, 20]]
+        )
 
     def test_rotation3d_matches_exact_rotation_to_first_order(self):
         model = Rotation3D(SENSOR, focal=(200.0, 200.0))

@@ -1,0 +1,134 @@
+"""Writers of segmentation results, streaming so memory stays bounded by one window.
+
+Layout of one recording's output folder:
+
+* ``labels.npz``: ``labels`` (int64, the cluster of each event within its window, ``-1`` for events in
+  no segmented window) and ``window`` (int64, the window of each event, ``-1`` likewise), both in input
+  order. With overlapping windows an event keeps the label of the first window that holds it. Cluster
+  numbers are per window: cluster ``k`` of window ``w`` is row ``k`` of that window's models.
+* ``models.jsonl``: one JSON object per segmented window: index, first event, event count, ``t_ref``
+  (seconds), motion model, models (rows of parameters), level-one model count and timings in ms.
+* ``summary.json``: totals, events per second, windows, and per-stage timing statistics.
+* ``config.yaml``: the resolved configuration.
+* ``images/NNNNNN.png`` (optional): the paper's Fig. 1 panels for each window.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from evseg_torch.config import SegmenterConfig, dump_config
+from evseg_torch.errors import EvsegError
+
+
+class OutputExistsError(EvsegError, FileExistsError):
+    """The output folder already holds results and overwriting was not asked for."""
+
+
+class SegmentationWriter:
+    """Write one recording's per-window results as they come.
+
+    Args:
+        folder: output folder of this recording; created if missing.
+        config: the configuration used, copied as ``config.yaml``.
+        save_images: also write one Fig. 1 PNG per window.
+        overwrite: replace existing results; otherwise an existing non-empty folder is an error.
+    """
+
+    def __init__(
+        self, folder: str | Path, config: SegmenterConfig, save_images: bool = False, overwrite: bool = False
+    ):
+        self.folder = Path(folder)
+        if self.folder.exists() and any(self.folder.iterdir()):
+            if not overwrite:
+                raise OutputExistsError(
+                    f"output folder {self.folder} is not empty; pass --overwrite to replace it"
+                )
+            shutil.rmtree(self.folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        dump_config(config, self.folder / "config.yaml")
+        self.save_images = save_images
+        if save_images:
+            (self.folder / "images").mkdir()
+        self._scratch = tempfile.TemporaryDirectory(dir=self.folder, prefix=".partial-")
+        self._labels = open(Path(self._scratch.name) / "labels.bin", "wb")
+        self._windows = open(Path(self._scratch.name) / "window.bin", "wb")
+        self._models = open(self.folder / "models.jsonl", "w")
+        self.written = 0
+        self.timings: dict[str, list[float]] = {}
+        self.n_windows = 0
+
+    def add(self, segmentation) -> None:
+        """Record one window's :class:`~evseg_torch.pipeline.Segmentation` (placed by its ``offset``)."""
+        index, offset = segmentation.window_index, segmentation.offset
+        labels = np.asarray(segmentation.labels, dtype=np.int64)
+        if offset > self.written:
+            self._write_labels(np.full(offset - self.written, -1), np.full(offset - self.written, -1))
+        fresh = labels[max(self.written - offset, 0) :]
+        self._write_labels(fresh, np.full(len(fresh), index))
+        record = {
+            "window": index,
+            "first_event": int(offset),
+            "n_events": len(labels),
+            "t_ref": segmentation.t_ref,
+            "motion_model": segmentation.motion_model,
+            "models": segmentation.models.tolist(),
+            "n_level_one_models": len(segmentation.level_one_models),
+            "timings_ms": segmentation.timings_ms,
+        }
+        self._models.write(json.dumps(record) + "\n")
+        for stage, value in segmentation.timings_ms.items():
+            self.timings.setdefault(stage, []).append(value)
+        self.n_windows += 1
+        if self.save_images:
+            from evseg_torch.viz import fig1_figure, save_figure
+
+            figure = fig1_figure(segmentation, title=f"window {index}")
+            save_figure(figure, self.folder / "images" / f"{index:06d}.png")
+
+    def close(self, n_events: int, wall_s: float, extra: dict | None = None) -> dict:
+        """Finish ``labels.npz`` and write ``summary.json``; returns the summary."""
+        if n_events > self.written:
+            self._write_labels(np.full(n_events - self.written, -1), np.full(n_events - self.written, -1))
+        self._labels.close()
+        self._windows.close()
+        self._models.close()
+        with zipfile.ZipFile(
+            self.folder / "labels.npz", "w", compression=zipfile.ZIP_STORED, allowZip64=True
+        ) as archive:
+            for name in ("labels", "window"):
+                _stream_npy(archive, name, Path(self._scratch.name) / f"{name}.bin", self.written)
+        self._scratch.cleanup()
+        summary = {
+            "events": int(n_events),
+            "windows": self.n_windows,
+            "wall_s": wall_s,
+            "events_per_s": n_events / wall_s if wall_s > 0 else None,
+            "timings_ms": {
+                stage: {"median": float(np.median(v)), "mean": float(np.mean(v)), "max": float(np.max(v))}
+                for stage, v in self.timings.items()
+            },
+            **(extra or {}),
+        }
+        (self.folder / "summary.json").write_text(json.dumps(summary, indent=2))
+        return summary
+
+    def _write_labels(self, labels: np.ndarray, windows: np.ndarray) -> None:
+        labels.astype("<i8").tofile(self._labels)
+        windows.astype("<i8").tofile(self._windows)
+        self.written += len(labels)
+
+
+def _stream_npy(archive: zipfile.ZipFile, name: str, raw: Path, count: int) -> None:
+    """Add a raw little-endian int64 file to an npz member without loading it into memory."""
+    with archive.open(f"{name}.npy", "w", force_zip64=True) as member, open(raw, "rb") as source:
+        np.lib.format.write_array_header_1_0(
+            member, {"descr": "<i8", "fortran_order": False, "shape": (count,)}
+        )
+        shutil.copyfileobj(source, member, length=1 << 22)

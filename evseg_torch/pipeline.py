@@ -1,0 +1,261 @@
+"""The cascaded segmenter: level one's model pool feeds level two's event clustering.
+
+This is the only module that knows both levels (level one never imports level two and vice versa).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from evseg_torch.config import SegmenterConfig, load_config, replace_config
+from evseg_torch.events import as_events, check_sensor_size, iter_windows, to_torch
+from evseg_torch.level_one.features import Correspondences, extract_correspondences
+from evseg_torch.level_one.progressive_x import progressive_x
+from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
+from evseg_torch.motion import MotionModel, make_motion_model
+
+
+@dataclass(frozen=True)
+class Segmentation:
+    """The result of segmenting one window.
+
+    Attributes:
+        labels: cluster of each event in input order, int64 :math:`(N,)`; ``-1`` only for events
+            assigned to no model (never, unless the window could not be segmented).
+        models: row ``k`` is the model of label ``k``, float64 :math:`(K, P)`, in the
+            :mod:`evseg_torch.motion` convention (rates per second, centred coordinates).
+        motion_model: the name of the models' family.
+        warped_xy: every event warped by its own cluster's model to ``t_ref``, float64 :math:`(N, 2)`.
+        t_ref: reference time, seconds in the input's time base.
+        feature_tracks: level one's correspondences.
+        feature_labels: level one's cluster of each correspondence, ``-1`` for outliers, :math:`(M,)`.
+        level_one_models: level one's model pool, :math:`(M_1, P)`, before level two.
+        iwes: each cluster's compensated image of its own events, :math:`(K, H, W)`.
+        energy_history: level two's energy after each labelling.
+        timings_ms: milliseconds spent in ``features``, ``level_one``, ``level_two`` and ``total``.
+        sensor_size: ``(H, W)``.
+        events: the window's canonical events.
+        offset: index of the window's first event in the stream (0 for a single window).
+        window_index: the window's number in the stream (0 for a single window).
+    """
+
+    labels: np.ndarray
+    models: np.ndarray
+    motion_model: str
+    warped_xy: np.ndarray
+    t_ref: float
+    feature_tracks: Correspondences
+    feature_labels: np.ndarray
+    level_one_models: np.ndarray
+    iwes: np.ndarray
+    energy_history: tuple[float, ...]
+    timings_ms: dict[str, float]
+    sensor_size: tuple[int, int]
+    events: np.ndarray
+    offset: int = 0
+    window_index: int = 0
+
+    @property
+    def n_clusters(self) -> int:
+        return int(self.models.shape[0])
+
+
+class CascadedSegmenter(nn.Module):
+    """Event motion segmentation by cascaded two-level multi-model fitting (Lu, Zhou, Shen, IROS 2021).
+
+    Level one (NumPy) detects Shi-Tomasi corners on raw event images, tracks them with Lucas-Kanade and
+    clusters the tracks with Progressive-X; its models seed level two (torch), which labels every event
+    by graph cuts and refits each cluster's model by contrast maximisation. Being an ``nn.Module``, it
+    moves with ``.to(device)``; level one always runs on the CPU.
+
+    Args:
+        sensor_size: ``(H, W)``.
+        config: a :class:`~evseg_torch.config.SegmenterConfig`; defaults equal ``configs/default.yaml``.
+        **overrides: flat overrides of any config field, e.g. ``lambda_smooth=40``.
+
+    Examples:
+        >>> from evseg_torch.synthetic import make_scene
+        >>> scene = make_scene((90, 120), n_objects=1, rng=0)
+        >>> result = CascadedSegmenter(sensor_size=(90, 120))(scene.events)
+        >>> result.labels.shape == scene.labels.shape
+        True
+    """
+
+    def __init__(
+        self, sensor_size: tuple[int, int], config: SegmenterConfig | None = None, **overrides
+    ) -> None:
+        super().__init__()
+        self.sensor_size = check_sensor_size(sensor_size)
+        self.config = replace_config(config or SegmenterConfig(), **overrides)
+        cfg = self.config
+        self.motion: MotionModel = make_motion_model(
+            cfg.motion_model,
+            self.sensor_size,
+            **({"focal": cfg.focal} if cfg.motion_model == "rotation3d" else {}),
+        )
+        two = cfg.level_two
+        self.level_two = GraphCutContrastSegmenter(
+            self.motion,
+            self.sensor_size,
+            lambda_data=two.lambda_data,
+            lambda_smooth=two.lambda_smooth,
+            lambda_label=two.lambda_label,
+            n_iter_segmentation=two.n_iter_segmentation,
+            n_iter_labeling=two.n_iter_labeling,
+            sigma=two.sigma,
+            optimizer=two.optimizer,
+            max_iter=two.max_iter,
+            lr=two.lr,
+        )
+        self._rng = np.random.default_rng(cfg.seed)
+        # Follows .to(device) and .double(), so level two runs where the caller put the module.
+        self.register_buffer("_anchor", torch.zeros(0), persistent=False)
+
+    @classmethod
+    def from_config(cls, path: str | Path, sensor_size: tuple[int, int], **overrides) -> CascadedSegmenter:
+        """Build from a YAML file (see ``configs/``), with optional flat overrides."""
+        return cls(sensor_size, load_config(path), **overrides)
+
+    def extra_repr(self) -> str:
+        return f"sensor_size={self.sensor_size}, motion_model={self.config.motion_model!r}"
+
+    def forward(
+        self, events, t_ref: float | None = None, initial_models: np.ndarray | None = None
+    ) -> Segmentation:
+        """Segment one window.
+
+        Args:
+            events: the window's events in any form :func:`~evseg_torch.events.as_events` accepts.
+            t_ref: reference time in seconds of the input's time base; defaults to the first event.
+            initial_models: models of a previous window, :math:`(M, P)`, to bootstrap level one.
+
+        Returns:
+            :class:`Segmentation`.
+        """
+        events = as_events(events, self.sensor_size)
+        return self._segment(events, t_ref, initial_models)
+
+    def stream(
+        self,
+        events,
+        window_ms: float | None = None,
+        stride_ms: float | None = None,
+        events_per_window: int | None = None,
+    ) -> Iterator[Segmentation]:
+        """Segment sliding windows, reusing each window's models to bootstrap the next.
+
+        Args:
+            events: all events (any accepted form), or an iterable of canonical chunks of a recording.
+            window_ms, stride_ms, events_per_window: window geometry; default from the config.
+
+        Yields:
+            :class:`Segmentation` of each window with at least ``min_events`` events; its ``offset`` and
+            ``window_index`` place it in the stream.
+        """
+        chunks = _as_chunks(events, self.sensor_size)
+        windows = self.config.window
+        if window_ms is None and events_per_window is None:
+            window_ms, events_per_window = windows.window_ms, windows.events_per_window
+            if events_per_window is not None:
+                window_ms = None
+        stride_ms = stride_ms if stride_ms is not None else (windows.stride_ms if window_ms else None)
+        previous = None
+        for window in iter_windows(
+            chunks, window_ms=window_ms, stride_ms=stride_ms, events_per_window=events_per_window
+        ):
+            if len(window.events) < windows.min_events:
+                continue
+            result = self._segment(window.events, None, previous)
+            if self.config.level_one.reuse_models:
+                previous = result.models
+            yield replace(result, offset=window.offset, window_index=window.index)
+
+    def _segment(self, events: np.ndarray, t_ref: float | None, initial_models) -> Segmentation:
+        cfg = self.config
+        start = time.perf_counter()
+        t_ref_us = int(events["t"][0]) if t_ref is None else round(t_ref * 1e6)
+        feats = cfg.features
+        tracks = extract_correspondences(
+            events,
+            self.sensor_size,
+            sub_window=feats.sub_window,
+            t_ref=t_ref_us,
+            max_corners=feats.max_corners,
+            min_distance=feats.min_distance,
+            quality_level=feats.quality_level,
+            sigma=feats.corner_sigma,
+            win_size=(feats.lk_win_size, feats.lk_win_size),
+            max_level=feats.lk_max_level,
+            fb_threshold=feats.fb_threshold,
+        )
+        after_features = time.perf_counter()
+        one = cfg.level_one
+        fitted = progressive_x(
+            tracks.src,
+            tracks.dst,
+            tracks.dt,
+            self.motion,
+            threshold=one.threshold,
+            conf=one.conf,
+            spatial_coherence_weight=one.spatial_coherence_weight,
+            neighborhood_ball_radius=one.neighborhood_ball_radius,
+            maximum_tanimoto_similarity=one.maximum_tanimoto_similarity,
+            max_iters=one.max_iters,
+            minimum_point_number=one.minimum_point_number,
+            maximum_model_number=one.maximum_model_number,
+            initial_models=initial_models,
+            rng=self._rng,
+        )
+        after_level_one = time.perf_counter()
+        pool = fitted.params if len(fitted.params) else np.zeros((1, self.motion.n_params))
+        device, dtype = self._device_dtype()
+        batch = to_torch(events, t_ref_us=t_ref_us, device=device, dtype=dtype)
+        with torch.no_grad():
+            two = self.level_two(batch, torch.as_tensor(pool, device=device, dtype=dtype))
+        labels = np.asarray(_numpy(two.labels), dtype=np.int64)
+        models = np.asarray(_numpy(two.params), dtype=np.float64)
+        xy = np.column_stack([events["x"], events["y"]]).astype(np.float64)
+        dt = (events["t"] - t_ref_us) * 1e-6
+        own = models[np.clip(labels, 0, None)]
+        warped = xy - dt[:, None] * (self.motion.jacobian(xy) @ own[:, :, None])[..., 0]
+        end = time.perf_counter()
+        return Segmentation(
+            labels=labels,
+            models=models,
+            motion_model=cfg.motion_model,
+            warped_xy=warped,
+            t_ref=t_ref_us * 1e-6,
+            feature_tracks=tracks,
+            feature_labels=np.asarray(fitted.labels, dtype=np.int64),
+            level_one_models=np.asarray(fitted.params, dtype=np.float64),
+            iwes=np.asarray(_numpy(two.iwes)),
+            energy_history=tuple(two.energy_history),
+            timings_ms={
+                "features": 1e3 * (after_features - start),
+                "level_one": 1e3 * (after_level_one - after_features),
+                "level_two": 1e3 * (end - after_level_one),
+                "total": 1e3 * (end - start),
+            },
+            sensor_size=self.sensor_size,
+            events=events,
+        )
+
+    def _device_dtype(self) -> tuple[torch.device, torch.dtype]:
+        return self._anchor.device, self._anchor.dtype
+
+
+def _as_chunks(events, sensor_size) -> Iterable[np.ndarray]:
+    if isinstance(events, np.ndarray) or not isinstance(events, Iterable):
+        return [as_events(events, sensor_size)]
+    return (as_events(chunk, sensor_size) for chunk in events)
+
+
+def _numpy(value):
+    return value.detach().cpu().numpy() if isinstance(value, torch.Tensor) else value
