@@ -32,7 +32,8 @@ class OutputExistsError(EvsegError, FileExistsError):
 
 
 class SegmentationWriter:
-    """Write one recording's per-window results as they come.
+    """Write one recording's per-window results as they come; as a context manager, an error inside
+    the block removes the partial results.
 
     Args:
         folder: output folder of this recording; created if missing.
@@ -63,6 +64,20 @@ class SegmentationWriter:
         self.written = 0
         self.timings: dict[str, list[float]] = {}
         self.n_windows = 0
+
+    def __enter__(self) -> SegmentationWriter:
+        return self
+
+    def __exit__(self, kind, error, traceback) -> None:
+        if kind is not None:
+            self.abort()
+
+    def abort(self) -> None:
+        """Close everything and remove the partial results, e.g. when the input turns out to be bad."""
+        for handle in (self._labels, self._windows, self._models):
+            handle.close()
+        self._scratch.cleanup()
+        shutil.rmtree(self.folder, ignore_errors=True)
 
     def add(self, segmentation) -> None:
         """Record one window's :class:`~evseg_torch.pipeline.Segmentation` (placed by its ``offset``)."""

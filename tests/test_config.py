@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import pytest
 
 from evseg_torch.config import (
@@ -66,3 +68,16 @@ def test_missing_file():
     with pytest.raises(ConfigError, match="cannot read config file"):
         load_config("no/such/file.yaml")
     assert config_from_dict({}) == SegmenterConfig()
+
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+@pytest.mark.parametrize("name", ["default.yaml", "eed.yaml", "evimo.yaml"])
+def test_shipped_configs_load_strictly(name):
+    config = load_config(CONFIGS / name)
+    assert isinstance(config, SegmenterConfig)
+
+
+def test_default_yaml_equals_dataclass_defaults():
+    assert load_config(CONFIGS / "default.yaml") == SegmenterConfig()

@@ -123,11 +123,15 @@ def _columns(npz) -> dict[str, np.ndarray]:
     if "events" in keys or len(keys) == 1:
         name = "events" if "events" in keys else keys.pop()
         events = npz[name]
+        if not isinstance(events, np.ndarray):
+            raise ReaderError(f"member {name!r} is not a valid .npy array")  # NpzFile returns raw bytes
         if events.ndim != 2 or events.shape[1] != 4:
             raise ReaderError(f"{name!r} has shape {events.shape}; {_LAYOUTS_HELP}")
         return {"events": events}
     if {"t_us", "x", "y", "p"} <= keys:
         columns = {name: npz[name] for name in ("t_us", "x", "y", "p")}
+        if not all(isinstance(column, np.ndarray) for column in columns.values()):
+            raise ReaderError("a column member is not a valid .npy array")
     elif {"t_raw", "x", "y"} <= keys and "p" not in keys:
         columns = {"t_us": npz["t_raw"], "x": npz["x"], "y": npz["y"]}
         columns["p"] = np.ones(len(columns["t_us"]), dtype=np.int8)

@@ -1,0 +1,161 @@
+import json
+import subprocess
+import sys
+import zipfile
+
+import numpy as np
+import pytest
+
+from evseg_torch.cli import main
+from evseg_torch.io import load_events
+
+SIZE = "90x120"
+
+
+def _scene_file(tmp_path, seed=0, duration_ms=40):
+    assert (
+        main(
+            [
+                "--quiet",
+                "simulate",
+                "--out",
+                str(tmp_path / "scenes"),
+                "--seeds",
+                str(seed),
+                "--sensor-size",
+                SIZE,
+                "--duration-ms",
+                str(duration_ms),
+                "--objects",
+                "1",
+            ]
+        )
+        == 0
+    )
+    return tmp_path / "scenes" / f"scene_{seed:04d}.npz"
+
+
+def _error_line(capsys):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("evseg: error: ")
+    return err[0]
+
+
+@pytest.mark.parametrize(
+    "command", [[], ["segment"], ["demo"], ["simulate"], ["evaluate"], ["evaluate", "eed"]]
+)
+def test_help_is_clear(command, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main([*command, "--help"])
+    assert stop.value.code == 0
+    assert "usage: evseg" in capsys.readouterr().out
+
+
+def test_console_script_runs():
+    out = subprocess.run([sys.executable, "-m", "evseg_torch.cli", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and "segment" in out.stdout
+
+
+def test_simulate_writes_readable_scenes(tmp_path):
+    path = _scene_file(tmp_path)
+    events = load_events(path)
+    data = np.load(path)
+    assert len(events) == len(data["labels"]) > 1000
+    assert (int(data["height"]), int(data["width"])) == (90, 120)
+
+
+def test_segment_writes_results_in_input_order(tmp_path):
+    path = _scene_file(tmp_path)
+    out = tmp_path / "out"
+    code = main(["--quiet", "segment", str(path), "--out", str(out), "--window-ms", "20", "--save-images"])
+    assert code == 0
+    folder = out / path.stem
+    labels = np.load(folder / "labels.npz")
+    n_events = len(load_events(path))
+    assert labels["labels"].shape == labels["window"].shape == (n_events,)
+    assert labels["labels"].dtype == np.int64
+    windows = [json.loads(line) for line in (folder / "models.jsonl").read_text().splitlines()]
+    assert [w["window"] for w in windows] == list(range(len(windows))) and len(windows) >= 2
+    for w in windows:
+        chunk = labels["labels"][w["first_event"] : w["first_event"] + w["n_events"]]
+        assert chunk.min() >= 0 and chunk.max() < len(w["models"])
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["events"] == n_events and summary["windows"] == len(windows)
+    assert set(summary["timings_ms"]) == {"features", "level_one", "level_two", "total"}
+    assert (folder / "config.yaml").is_file()
+    assert len(list((folder / "images").glob("*.png"))) == len(windows)
+
+
+def test_existing_output_needs_overwrite(tmp_path, capsys):
+    path = _scene_file(tmp_path)
+    out = tmp_path / "out"
+    (out / path.stem).mkdir(parents=True)
+    (out / path.stem / "keep.txt").write_text("mine")
+    assert main(["--quiet", "segment", str(path), "--out", str(out)]) == 2
+    assert "--overwrite" in _error_line(capsys)
+    assert (out / path.stem / "keep.txt").read_text() == "mine"
+    assert main(["--quiet", "segment", str(path), "--out", str(out), "--overwrite", "--window-ms", "40"]) == 0
+    assert not (out / path.stem / "keep.txt").exists()
+
+
+def _truncated_npz(tmp_path):
+    path = tmp_path / "cut.npz"
+    np.savez(path, events=np.zeros((100, 4)))
+    path.write_bytes(path.read_bytes()[:60])
+    return path
+
+
+def _garbled_npz(tmp_path):
+    path = tmp_path / "bad.npz"
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("events.npy", b"not an array")
+    return path
+
+
+def _text(tmp_path, name, lines):
+    path = tmp_path / name
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    ("make", "args", "message"),
+    [
+        (lambda p: p / "missing.txt", ["--sensor-size", SIZE], "no such file"),
+        (lambda p: _text(p, "events.xyz", ["0 1 1 1"]), ["--sensor-size", SIZE], "unknown format"),
+        (_truncated_npz, ["--sensor-size", SIZE], "cut.npz"),
+        (_garbled_npz, ["--sensor-size", SIZE], "bad.npz"),
+        (lambda p: _text(p, "far.txt", ["0.0 500 1 1"]), ["--sensor-size", SIZE], "outside the sensor"),
+        (lambda p: _text(p, "back.txt", ["0.002 1 1 1", "0.001 1 1 0"]), ["--sensor-size", SIZE], "decrease"),
+        (lambda p: _text(p, "empty.txt", ["# no events"]), ["--sensor-size", SIZE], "no events"),
+        (lambda p: _text(p, "nosize.txt", ["0.0 1 1 1"]), [], "--sensor-size"),
+        (
+            lambda p: _text(p, "ok.txt", ["0.0 1 1 1"]),
+            ["--sensor-size", SIZE, "--events-per-window", "0"],
+            "positive",
+        ),
+        (
+            lambda p: _text(p, "ok2.txt", ["0.0 1 1 1"]),
+            ["--sensor-size", SIZE, "--window-ms", "-5"],
+            "positive",
+        ),
+    ],
+)
+def test_bad_input_gives_one_line_and_exit_2(tmp_path, capsys, make, args, message):
+    path = make(tmp_path)
+    assert main(["--quiet", "segment", str(path), "--out", str(tmp_path / "out"), *args]) == 2
+    assert message in _error_line(capsys)
+
+
+def test_bad_sensor_size_argument(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["segment", "x.txt", "--out", "o", "--sensor-size", "big"])
+    assert stop.value.code == 2
+    assert "HxW" in capsys.readouterr().err
+
+
+def test_demo_writes_figure_and_metrics(tmp_path):
+    assert main(["--quiet", "demo", "--out", str(tmp_path)]) == 0
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert 0.0 <= metrics["accuracy"] <= 1.0
+    assert (tmp_path / "demo.png").stat().st_size > 10_000
