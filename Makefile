@@ -20,7 +20,7 @@ demo: $(STAMP)
 	$(VENV)/bin/evseg demo --out demo_out
 
 test: $(STAMP)
-	$(PY) -m pytest -q -p no:cacheprovider tests notebooks --nbmake-timeout=600 $(PYTEST_ARGS)
+	$(PY) -m pytest -p no:cacheprovider --doctest-modules --nbmake --nbmake-timeout=600 evseg_torch tests notebooks $(PYTEST_ARGS)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py
