@@ -1,0 +1,91 @@
+"""Stream a long synthetic recording through ``evseg segment`` and report throughput and peak memory.
+
+The recording (``--minutes`` long, written chunk by chunk to an ``.npy`` file so that making it needs
+little memory) repeats a handful of distinct synthetic 30 ms scenes one after another, shifted in time.
+``evseg segment`` runs in a child process; its peak resident memory (the child's own ``ru_maxrss``) is
+reported for each length, so one can check that memory does not grow with the recording's length.
+
+    .venv/bin/python benchmarks/bench_stream.py [--minutes 1 2] [--scenes 8] [--events-per-scene 2500]
+"""
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from evseg_torch.events import EVENT_DTYPE
+from evseg_torch.synthetic import make_scene
+
+SENSOR = (180, 240)
+SCENE_US = 30_000
+
+
+def write_recording(path: Path, minutes: float, n_scenes: int, events_per_scene: int) -> int:
+    scenes = [
+        make_scene(SENSOR, 0.03, 1 + s % 3, n_events=events_per_scene, rng=s).events for s in range(n_scenes)
+    ]
+    n_windows = round(minutes * 60e6 / SCENE_US)
+    total = sum(len(scenes[w % n_scenes]) for w in range(n_windows))
+    out = np.lib.format.open_memmap(path, mode="w+", dtype=EVENT_DTYPE, shape=(total,))
+    position = 0
+    for window in range(n_windows):
+        chunk = scenes[window % n_scenes].copy()
+        chunk["t"] = chunk["t"] - chunk["t"][0] + window * SCENE_US
+        out[position : position + len(chunk)] = chunk
+        position += len(chunk)
+    out.flush()
+    del out
+    return total
+
+
+# The child reports its own peak resident memory, so each length is measured on its own.
+CHILD = (
+    "import atexit, resource, sys\n"
+    "peak = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+    "atexit.register(lambda: print('MAXRSS_KIB', peak(), file=sys.stderr))\n"
+    "from evseg_torch.cli import main\n"
+    "sys.exit(main(sys.argv[1:]))"
+)
+
+
+def run(path: Path, out: Path) -> dict:
+    args = ["--quiet", "segment", str(path), "--out", str(out), "--sensor-size", f"{SENSOR[0]}x{SENSOR[1]}"]
+    start = time.perf_counter()
+    child = subprocess.run(
+        [sys.executable, "-c", CHILD, *args, "--window-ms", "30", "--overwrite"],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    wall = time.perf_counter() - start
+    peak_kib = int(child.stderr.split("MAXRSS_KIB")[-1].split()[0])
+    summary = json.loads((out / path.stem / "summary.json").read_text())
+    return {"wall_s": wall, "peak_rss_mib": peak_kib / 1024, **summary}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, nargs="+", default=[1.0, 2.0])
+    parser.add_argument("--scenes", type=int, default=8)
+    parser.add_argument("--events-per-scene", type=int, default=2500)
+    args = parser.parse_args()
+    print(f"{'minutes':>7} {'events':>10} {'windows':>7} {'wall s':>8} {'events/s':>9} {'peak RSS MiB':>12}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for minutes in args.minutes:
+            path = Path(tmp) / f"stream_{minutes:g}min.npy"
+            n_events = write_recording(path, minutes, args.scenes, args.events_per_scene)
+            result = run(path, Path(tmp) / "out")
+            print(
+                f"{minutes:>7g} {n_events:>10} {result['windows']:>7} {result['wall_s']:>8.1f} "
+                f"{n_events / result['wall_s']:>9.0f} {result['peak_rss_mib']:>12.0f}"
+            )
+            path.unlink()
+
+
+if __name__ == "__main__":
+    main()
