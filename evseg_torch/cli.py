@@ -267,7 +267,9 @@ def _demo(args) -> int:
         "mean IMO IoU": float(np.mean(list(ious.values()))),
         "time": f"{result.timings_ms['total']:.0f} ms",
     }
-    figure = fig1_figure(result, title=f"synthetic scene, seed {args.seed}", metrics=metrics)
+    figure = fig1_figure(
+        result, title=f"synthetic scene, seed {args.seed}", metrics=metrics, ground_truth=scene.labels
+    )
     path = save_figure(figure, args.out / "demo.png")
     (args.out / "metrics.json").write_text(json.dumps({**metrics, "timings_ms": result.timings_ms}, indent=2))
     log.info("wrote %s", path)

@@ -76,7 +76,12 @@ def render_labels(xy: np.ndarray, labels: np.ndarray, sensor_size: tuple[int, in
     return image
 
 
-def fig1_figure(segmentation, title: str | None = None, metrics: dict | None = None):
+def fig1_figure(
+    segmentation,
+    title: str | None = None,
+    metrics: dict | None = None,
+    ground_truth: np.ndarray | None = None,
+):
     """The paper's Fig. 1 panels for one window, as a matplotlib figure.
 
     Panels: (a) raw image of events, (b) feature tracks, (c) feature clusters, (d) the segmented,
@@ -86,6 +91,8 @@ def fig1_figure(segmentation, title: str | None = None, metrics: dict | None = N
         segmentation: a :class:`~evseg_torch.pipeline.Segmentation`.
         title: figure title.
         metrics: optional name → value pairs printed under the title (e.g. accuracy against ground truth).
+        ground_truth: optional true layer of each event, :math:`(N,)`; adds a fifth panel of the raw
+            events coloured by it.
     """
     plt = _pyplot()
     sensor_size = segmentation.sensor_size
@@ -93,7 +100,8 @@ def fig1_figure(segmentation, title: str | None = None, metrics: dict | None = N
         np.column_stack([segmentation.events["x"], segmentation.events["y"]]), sensor_size
     )
     tracks = segmentation.feature_tracks
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.6), constrained_layout=True)
+    n_panels = 4 if ground_truth is None else 5
+    fig, axes = plt.subplots(1, n_panels, figsize=(4 * n_panels, 3.6), constrained_layout=True)
     axes[0].imshow(raw)
     axes[0].set_title("(a) raw events")
     for ax, colour_by_cluster, name in (
@@ -112,6 +120,10 @@ def fig1_figure(segmentation, title: str | None = None, metrics: dict | None = N
         ax.set_title(name)
     axes[3].imshow(render_labels(segmentation.warped_xy, segmentation.labels, sensor_size))
     axes[3].set_title(f"(d) segmented, compensated ({len(segmentation.models)} clusters)")
+    if ground_truth is not None:
+        raw_xy = np.column_stack([segmentation.events["x"], segmentation.events["y"]])
+        axes[4].imshow(render_labels(raw_xy, ground_truth, sensor_size))
+        axes[4].set_title("ground truth (raw events)")
     for ax in axes:
         ax.set_axis_off()
     header = title or ""
