@@ -1,0 +1,101 @@
+import numpy as np
+import pytest
+import torch
+
+from evseg_torch import CascadedSegmenter, EventFormatError, Segmentation
+from evseg_torch.errors import ConfigError
+from evseg_torch.events import to_array
+from evseg_torch.synthetic import make_scene
+
+SIZE = (90, 120)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(SIZE, 0.03, n_objects=1, rng=3)
+
+
+@pytest.fixture(scope="module")
+def result(scene):
+    return CascadedSegmenter(sensor_size=SIZE)(scene.events)
+
+
+def test_result_contract(scene, result):
+    n = len(scene.events)
+    assert isinstance(result, Segmentation)
+    assert result.labels.shape == (n,) and result.labels.dtype == np.int64
+    assert result.labels.min() >= -1 and result.labels.max() < result.n_clusters
+    assert result.models.shape == (result.n_clusters, 4) and result.models.dtype == np.float64
+    assert result.motion_model == "affine4"
+    assert result.warped_xy.shape == (n, 2) and np.all(np.isfinite(result.warped_xy))
+    assert result.t_ref == pytest.approx(scene.events["t"][0] * 1e-6)
+    assert len(result.feature_labels) == len(result.feature_tracks)
+    assert set(result.timings_ms) == {"features", "level_one", "level_two", "total"}
+    assert result.iwes.shape == (result.n_clusters, *SIZE)
+
+
+def test_warped_positions_use_each_events_own_model(scene, result):
+    segmenter = CascadedSegmenter(sensor_size=SIZE)
+    xy = np.column_stack([scene.events["x"], scene.events["y"]]).astype(np.float64)
+    dt = (scene.events["t"] - scene.events["t"][0]) * 1e-6
+    for k in range(result.n_clusters):
+        mine = result.labels == k
+        expected = segmenter.motion.warp(xy[mine], dt[mine], result.models[k])
+        np.testing.assert_allclose(result.warped_xy[mine], expected, atol=1e-9)
+
+
+def test_input_forms_agree_and_input_is_untouched(scene, result):
+    array = to_array(scene.events)
+    before = array.copy()
+    again = CascadedSegmenter(sensor_size=SIZE)(array)
+    np.testing.assert_array_equal(array, before)
+    np.testing.assert_array_equal(again.labels, result.labels)
+
+
+def test_same_seed_same_labels(scene, result):
+    np.testing.assert_array_equal(CascadedSegmenter(sensor_size=SIZE)(scene.events).labels, result.labels)
+
+
+def test_explicit_reference_time_moves_the_warp(scene, result):
+    t_ref = scene.events["t"][-1] * 1e-6
+    later = CascadedSegmenter(sensor_size=SIZE)(scene.events, t_ref=t_ref)
+    assert later.t_ref == pytest.approx(t_ref)
+    last = len(scene.events) - 1
+    np.testing.assert_allclose(later.warped_xy[last], [scene.events["x"][last], scene.events["y"][last]])
+
+
+def test_config_and_overrides(tmp_path):
+    (tmp_path / "c.yaml").write_text("level_two:\n  lambda_smooth: 12\n")
+    segmenter = CascadedSegmenter.from_config(tmp_path / "c.yaml", sensor_size=SIZE, lambda_label=100)
+    assert segmenter.config.level_two.lambda_smooth == 12 and segmenter.config.level_two.lambda_label == 100
+    assert CascadedSegmenter(sensor_size=SIZE, lambda_smooth=40).config.level_two.lambda_smooth == 40
+    with pytest.raises(ConfigError, match="lambda_smoth"):
+        CascadedSegmenter(sensor_size=SIZE, lambda_smoth=40)
+
+
+def test_stream_reuses_models_and_places_windows():
+    scene = make_scene(SIZE, 0.06, n_objects=1, rng=4)
+    segmenter = CascadedSegmenter(sensor_size=SIZE)
+    results = list(segmenter.stream(scene.events, window_ms=20))
+    assert [r.window_index for r in results] == list(range(len(results))) and len(results) >= 2
+    offsets = [r.offset for r in results]
+    assert offsets[0] == 0 and offsets == sorted(offsets)
+    assert sum(len(r.labels) for r in results) == len(scene.events)
+    chunks = [scene.events[:1000], scene.events[1000:]]
+    from_chunks = list(segmenter.stream(iter(chunks), window_ms=20))
+    assert [r.offset for r in from_chunks] == offsets
+
+
+def test_module_moves_with_dtype(scene):
+    segmenter = CascadedSegmenter(sensor_size=SIZE).double()
+    assert isinstance(segmenter, torch.nn.Module)
+    assert segmenter(scene.events).labels.shape == (len(scene.events),)
+
+
+def test_bad_input_raises_our_error():
+    with pytest.raises(EventFormatError, match="outside the sensor"):
+        CascadedSegmenter(sensor_size=SIZE)(np.array([[0.0, 500, 1, 1], [0.001, 2, 2, 0]]))
+    with pytest.raises(EventFormatError, match="decrease"):
+        CascadedSegmenter(sensor_size=SIZE)(np.array([[0.002, 1, 1, 1], [0.001, 2, 2, 0]]))
+    with pytest.raises(EventFormatError, match="sensor_size"):
+        CascadedSegmenter(sensor_size=(0, 5))
