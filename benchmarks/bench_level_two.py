@@ -7,7 +7,13 @@ would hand it over. Prints, per stage, the median over windows and repeats of th
 over the outer iterations), the median number of outer iterations, the graph's size, and
 ``torch.get_num_threads()``.
 
-    .venv/bin/python benchmarks/bench_level_two.py [--events 30000 --windows 3 --repeats 2 --threads 2]
+Threads: level two's tensors are small (K x 30k events, K images of 180 x 240), so intra-op threads gain
+little, and on a loaded machine (other processes on the 2 cores) OpenMP's spinning workers make every op
+wait for a descheduled thread: measured 3.8 s per window with 2 threads against 0.6 s with 1 (single ops
+up to 100x slower). Hence ``--threads 1`` by default; ``OMP_WAIT_POLICY=PASSIVE`` in the environment (set
+before Python starts) removes most of the penalty for 2 threads (0.8 s).
+
+    .venv/bin/python benchmarks/bench_level_two.py [--events 30000 --windows 3 --repeats 2 --threads 1]
 """
 
 import argparse
@@ -40,7 +46,7 @@ def main():
     parser.add_argument("--spurious", type=int, default=1)
     parser.add_argument("--windows", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (0: torch's default)")
     parser.add_argument("--max-iter", type=int, default=10, help="refit iterations (L-BFGS)")
     args = parser.parse_args()
     if args.threads:

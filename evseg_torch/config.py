@@ -103,6 +103,12 @@ class LevelTwoConfig:
         optimizer: ``lbfgs`` or ``adam`` for the contrast-maximisation refits.
         max_iter: optimiser iterations per refit.
         lr: learning rate (Adam) or initial step (L-BFGS).
+        data_normalization: ``relative`` (each event's image value divided by its best over the pool,
+            floored at the pool's 90th percentile) or ``global`` (EMSGC: divided by the global maximum).
+            Relative separates layers far better on our scenes; see :mod:`evseg_torch.level_two.data_term`.
+        refit_max_events: each refit sees an evenly spaced subsample of at most this many events per
+            cluster (``None``: all); models fitted on 4000 events are as good and several times faster.
+        label_tol: stop the outer iterations once at most this fraction of labels changed (EMSGC: 0).
         output_min_count: at output, pixels of a cluster's compensated image (σ = 0) holding more than this
             many events form the cluster's dense support (EMSGC: 2).
     """
@@ -116,6 +122,9 @@ class LevelTwoConfig:
     optimizer: str = "lbfgs"
     max_iter: int = 10
     lr: float = 1.0
+    data_normalization: str = "relative"
+    refit_max_events: int | None = 4000
+    label_tol: float = 0.002
     output_min_count: float = 2.0
 
 

@@ -5,9 +5,11 @@ This is the only module that knows both levels (level one never imports level tw
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
+from numbers import Real
 from pathlib import Path
 
 import numpy as np
@@ -15,11 +17,14 @@ import torch
 from torch import nn
 
 from evseg_torch.config import SegmenterConfig, load_config, replace_config
+from evseg_torch.errors import EventFormatError
 from evseg_torch.events import as_events, check_sensor_size, iter_windows, to_torch
 from evseg_torch.level_one.features import Correspondences, extract_correspondences
 from evseg_torch.level_one.progressive_x import progressive_x
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.motion import MotionModel, make_motion_model
+
+_MAX_SPAN_US = np.iinfo(np.int64).max
 
 
 @dataclass(frozen=True)
@@ -113,6 +118,9 @@ class CascadedSegmenter(nn.Module):
             optimizer=two.optimizer,
             max_iter=two.max_iter,
             lr=two.lr,
+            data_normalization=two.data_normalization,
+            refit_max_events=two.refit_max_events,
+            label_tol=two.label_tol,
         )
         self._rng = np.random.default_rng(cfg.seed)
         # Follows .to(device) and .double(), so level two runs where the caller put the module.
@@ -138,6 +146,11 @@ class CascadedSegmenter(nn.Module):
 
         Returns:
             :class:`Segmentation`.
+
+        Raises:
+            EventFormatError: the events are invalid (see :func:`~evseg_torch.events.as_events`), all at
+                one time, or ``t_ref`` is not a finite number of seconds within int64 microseconds of them.
+            ModelError: ``initial_models`` is malformed.
         """
         events = as_events(events, self.sensor_size)
         return self._segment(events, t_ref, initial_models)
@@ -180,7 +193,7 @@ class CascadedSegmenter(nn.Module):
     def _segment(self, events: np.ndarray, t_ref: float | None, initial_models) -> Segmentation:
         cfg = self.config
         start = time.perf_counter()
-        t_ref_us = int(events["t"][0]) if t_ref is None else round(t_ref * 1e6)
+        t_ref_us = _reference_us(events, t_ref)
         feats = cfg.features
         tracks = extract_correspondences(
             events,
@@ -249,6 +262,22 @@ class CascadedSegmenter(nn.Module):
 
     def _device_dtype(self) -> tuple[torch.device, torch.dtype]:
         return self._anchor.device, self._anchor.dtype
+
+
+def _reference_us(events: np.ndarray, t_ref) -> int:
+    if t_ref is None:
+        t_ref_us = int(events["t"][0])
+    elif isinstance(t_ref, bool) or not isinstance(t_ref, Real) or not math.isfinite(t_ref):
+        raise EventFormatError(f"t_ref must be a finite time in seconds, got {t_ref!r}")
+    else:
+        t_ref_us = round(float(t_ref) * 1e6)
+    # Event times are taken relative to t_ref in int64 microseconds, which must not wrap around.
+    span = max(abs(int(events["t"][0]) - t_ref_us), abs(int(events["t"][-1]) - t_ref_us))
+    if max(abs(t_ref_us), span) > _MAX_SPAN_US:
+        raise EventFormatError(
+            f"the events lie too far from t_ref = {t_ref_us * 1e-6} s for int64 microseconds"
+        )
+    return t_ref_us
 
 
 def _as_chunks(events, sensor_size) -> Iterable[np.ndarray]:

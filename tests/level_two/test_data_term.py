@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from evseg_torch.errors import ShapeError
+from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.data_term import DataCost, data_cost, sample_bilinear
 from evseg_torch.level_two.iwe import splat_events, warp_events
@@ -84,6 +84,23 @@ class TestDataCost:
         assert torch.all(together[:, 0] >= alone[:, 0] - 1e-4)
         assert together[:, 0].mean() > alone[:, 0].mean() + 10
 
+    def test_relative_normalisation(self):
+        # Each event's best model costs 0 where its value reaches the floor; a bright peak elsewhere
+        # does not raise the other models' costs, unlike the global normalisation.
+        events = _edge_events()
+        model = Translation((32, 40))
+        pool = torch.tensor([[300.0, -100.0], [0.0, 0.0], [-300.0, 0.0]])
+        cost = data_cost(model, events, pool, normalization="relative")
+        assert cost.shape == (400, 3) and cost.min() >= 0 and cost.max() <= 255
+        assert (cost.min(1).values == 0).float().mean() > 0.2  # best value above the floor
+        assert (cost.argmin(1) == 0).float().mean() > 0.9
+        # The costs of a model do not depend on how sharp the pool's other images are elsewhere: only
+        # each event's own best value (and the floor) counts; two copies of a model cost the same.
+        duplicate = data_cost(model, events, pool[[0, 0]], normalization="relative")
+        torch.testing.assert_close(duplicate[:, 0], duplicate[:, 1])
+        with pytest.raises(ConfigError, match="normalization"):
+            data_cost(model, events, pool, normalization="max")
+
     def test_single_pixel_is_free(self):
         events = EventBatch(torch.full((10, 2), 3.0), torch.linspace(0, 0.01, 10), torch.ones(10))
         cost = data_cost(Translation((8, 8)), events, torch.zeros(1, 2))
@@ -109,6 +126,10 @@ class TestDataCost:
             DataCost(model, sigma=1.0)(events, params), data_cost(model, events, params)
         )
         assert "sigma=1.0" in repr(DataCost(model))
+        torch.testing.assert_close(
+            DataCost(model, normalization="relative")(events, params),
+            data_cost(model, events, params, normalization="relative"),
+        )
 
     def test_device(self, device):
         events = _edge_events()
