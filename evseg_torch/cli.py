@@ -23,6 +23,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
     try:
+        _set_threads(args.threads)
         return args.run(args) or 0
     except (EvsegError, OSError) as err:
         print(f"evseg: error: {_one_line(err)}", file=sys.stderr)
@@ -38,6 +39,12 @@ def _parser() -> argparse.ArgumentParser:
         description="Event-camera motion segmentation by cascaded two-level multi-model fitting (IROS 2021).",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bars or log lines")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads per process (default 1: on shared CPUs more threads wait on each other)",
+    )
     commands = parser.add_subparsers(title="commands", required=True, metavar="COMMAND")
 
     segment = commands.add_parser(
@@ -243,10 +250,16 @@ class _CountingChunks:
             yield chunk
 
 
-def _single_thread() -> None:
+def _set_threads(threads: int) -> None:
+    if threads < 1:
+        raise EvsegError(f"--threads must be at least 1, got {threads}")
     import torch
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(threads)
+
+
+def _single_thread() -> None:
+    _set_threads(1)
 
 
 def _demo(args) -> int:
