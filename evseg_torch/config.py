@@ -50,16 +50,18 @@ class FeatureConfig:
         lk_win_size: Lucas-Kanade window side in pixels.
         lk_max_level: pyramid levels of Lucas-Kanade.
         fb_threshold: forward-backward round-trip error above which a track is dropped, pixels.
+        both_images: detect corners on the late image too and track them backwards, as the paper does.
     """
 
     sub_window: float = 1.0 / 3.0
-    max_corners: int = 200
-    min_distance: int = 4
-    quality_level: float = 0.05
+    max_corners: int = 500
+    min_distance: int = 3
+    quality_level: float = 0.001
     corner_sigma: float = 1.0
     lk_win_size: int = 21
     lk_max_level: int = 3
-    fb_threshold: float = 1.0
+    fb_threshold: float = 0.5
+    both_images: bool = True
 
 
 @dataclass(frozen=True)
@@ -75,17 +77,21 @@ class LevelOneConfig:
         max_iters: maximum RANSAC iterations per proposal.
         minimum_point_number: minimum inliers of an instance; also PEARL's label cost.
         maximum_model_number: at most this many instances; -1 means no limit.
+        scoring_exponent: exponent of the support shared with the compound model in the proposal
+            quality (paper Eq. 4: 1; pyprogressivex: 2, which buries objects whose motion a strip of
+            background shares).
         reuse_models: bootstrap each window with the previous window's models (paper Table III).
     """
 
     threshold: float = 1.5
     conf: float = 0.95
     spatial_coherence_weight: float = 0.14
-    neighborhood_ball_radius: float = 20.0
+    neighborhood_ball_radius: float = 15.0
     maximum_tanimoto_similarity: float = 0.5
     max_iters: int = 1000
     minimum_point_number: int = 10
     maximum_model_number: int = -1
+    scoring_exponent: float = 1.0
     reuse_models: bool = True
 
 

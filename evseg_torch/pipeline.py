@@ -207,6 +207,7 @@ class CascadedSegmenter(nn.Module):
             win_size=(feats.lk_win_size, feats.lk_win_size),
             max_level=feats.lk_max_level,
             fb_threshold=feats.fb_threshold,
+            both_images=feats.both_images,
         )
         after_features = time.perf_counter()
         one = cfg.level_one
@@ -223,6 +224,7 @@ class CascadedSegmenter(nn.Module):
             max_iters=one.max_iters,
             minimum_point_number=one.minimum_point_number,
             maximum_model_number=one.maximum_model_number,
+            scoring_exponent=one.scoring_exponent,
             initial_models=initial_models,
             rng=self._rng,
         )

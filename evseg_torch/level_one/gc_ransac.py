@@ -3,8 +3,10 @@
 A single-model robust fit of feature correspondences ``src -> dst`` (time gaps ``dt``) to a motion
 model of :mod:`evseg_torch.motion`, as in the paper's Sec. IV-A and Algorithm 1:
 
-* **NAPSAC sampling** on the neighbourhood graph: a centre drawn uniformly, the other ``m - 1`` points
-  of the minimal sample drawn from its neighbours;
+* **NAPSAC sampling** on the neighbourhood graph: a centre drawn at random, the other ``m - 1`` points
+  of the minimal sample drawn from its neighbours; with a compound model, points are drawn with
+  weight ``max(1 - pref(C), SAMPLING_FLOOR)``, so that samples land on the data no instance explains yet
+  (a small object's 10-30 tracks among 300 would otherwise need thousands of samples);
 * **truncated MSAC quality** with the truncated threshold ``1.5 * threshold`` (pitfall 9): a point with
   squared residual ``r2 < (1.5 tau)^2`` contributes its *preference* ``1 - r2 / (1.5 tau)^2``;
 * the **compound-model-aware quality** used inside Progressive-X: ``Q = S - (sum_i min(pref_i(C),
@@ -45,6 +47,8 @@ MAX_GRAPH_CUT_NUMBER = 10
 MAX_LOCAL_OPTIMIZATION_NUMBER = 10
 #: Rounds of the final iteratively re-weighted least squares.
 MAX_LEAST_SQUARES_ITERATIONS = 10
+#: Sampling weight of a point that the compound model fully explains (unexplained points weigh 1).
+SAMPLING_FLOOR = 0.05
 
 
 def preference(sq_residuals, threshold: float) -> np.ndarray:
@@ -140,8 +144,9 @@ class Correspondences:
     degree: np.ndarray
 
     @classmethod
-    def build(cls, src, dst, dt, model: MotionModel, *, neighborhood_ball_radius: float = 15.0,
-              neighbors=None) -> Correspondences:
+    def build(
+        cls, src, dst, dt, model: MotionModel, *, neighborhood_ball_radius: float = 15.0, neighbors=None
+    ) -> Correspondences:
         """Validate correspondences and build the neighbourhood graph (``neighbors`` overrides it).
 
         Raises:
@@ -200,21 +205,35 @@ class Correspondences:
         index = np.broadcast_to(np.arange(self.n_points), weights.shape)
         return self.fit(index, weights)
 
-    def napsac(self, rng: np.random.Generator, count: int) -> np.ndarray:
-        """``count`` minimal samples :math:`(count, m)`: a uniform centre plus ``m - 1`` of its neighbours.
+    def napsac(self, rng: np.random.Generator, count: int, weights: np.ndarray | None = None) -> np.ndarray:
+        """``count`` minimal samples :math:`(count, m)`: a centre plus ``m - 1`` of its neighbours.
 
         Centres without enough neighbours are never drawn (NAPSAC's retry); when no point has enough,
-        the samples are drawn uniformly from all points.
+        the samples are drawn uniformly from all points. ``weights`` :math:`(N,)`, positive, make
+        centres and neighbours that many times likelier (weighted sampling without replacement);
+        ``None`` draws them uniformly.
         """
         m = self.model.min_samples
         eligible = np.flatnonzero(self.degree >= m - 1)
         if eligible.size == 0:
             return np.argsort(rng.random((count, self.n_points)), axis=1)[:, :m]
-        centres = eligible[rng.integers(eligible.size, size=count)]
+        if weights is None:
+            centres = eligible[rng.integers(eligible.size, size=count)]
+        else:
+            odds = np.cumsum(weights[eligible])
+            centres = eligible[
+                np.minimum(
+                    np.searchsorted(odds, rng.random(count) * odds[-1], side="right"), eligible.size - 1
+                )
+            ]
         if m == 1:
             return centres[:, None]
         candidates = self.neighbors[centres]
-        keys = np.where(candidates >= 0, rng.random(candidates.shape), np.inf)
+        # Efraimidis-Spirakis: the m - 1 smallest exponential keys -log(u) / w are a weighted draw.
+        keys = -np.log1p(-rng.random(candidates.shape))
+        if weights is not None:
+            keys /= weights[candidates]
+        keys[candidates < 0] = np.inf
         picks = np.argpartition(keys, m - 2, axis=1)[:, : m - 1]
         return np.concatenate([centres[:, None], np.take_along_axis(candidates, picks, axis=1)], axis=1)
 
@@ -234,15 +253,21 @@ class _Scoring:
         return score
 
 
-def _local_optimisation(data: Correspondences, params, score, scoring: _Scoring, rng, *,
-                        spatial_coherence_weight: float):
+def _local_optimisation(
+    data: Correspondences, params, score, scoring: _Scoring, rng, *, spatial_coherence_weight: float
+):
     """GC-RANSAC's local optimisation: graph-cut labelling then refits, while the quality improves."""
     m = data.model.min_samples
     subset = 7 * m
     for _ in range(MAX_GRAPH_CUT_NUMBER):
-        inliers = np.flatnonzero(graph_cut_inliers(data.sq_residuals(params[None])[0], data.edges,
-                                                   threshold=scoring.threshold,
-                                                   spatial_coherence_weight=spatial_coherence_weight))
+        inliers = np.flatnonzero(
+            graph_cut_inliers(
+                data.sq_residuals(params[None])[0],
+                data.edges,
+                threshold=scoring.threshold,
+                spatial_coherence_weight=spatial_coherence_weight,
+            )
+        )
         if inliers.size < m:
             break
         # One batched solve: all labelled inliers, then random subsets of 7 m of them, as 0/1 weights.
@@ -280,22 +305,34 @@ def _polish(data: Correspondences, params, score, scoring: _Scoring):
     return params, score
 
 
-def run_gc_ransac(data: Correspondences, *, threshold: float, conf: float, spatial_coherence_weight: float,
-                  max_iters: int, min_iters: int, compound_preference: np.ndarray | None,
-                  scoring_exponent: float, rng: np.random.Generator):
+def run_gc_ransac(
+    data: Correspondences,
+    *,
+    threshold: float,
+    conf: float,
+    spatial_coherence_weight: float,
+    max_iters: int,
+    min_iters: int,
+    compound_preference: np.ndarray | None,
+    scoring_exponent: float,
+    rng: np.random.Generator,
+):
     """:func:`gc_ransac` on validated :class:`Correspondences` (Progressive-X calls it repeatedly)."""
     m = data.model.min_samples
     n_points = data.n_points
     if n_points < m:
         return None, np.zeros(n_points, dtype=bool), 0
     scoring = _Scoring(threshold, compound_preference, scoring_exponent)
+    # Samples are drawn mostly where the compound model leaves data unexplained: a sample there is the
+    # one that can propose an unseen motion (the floor keeps every point drawable).
+    weights = None if compound_preference is None else np.maximum(1.0 - compound_preference, SAMPLING_FLOOR)
     truncated = (1.5 * threshold) ** 2
     best, best_score = None, -np.inf
     required = max_iters
     iterations = 0
     while iterations < required:
         count = min(BATCH_SIZE, required - iterations)
-        params, valid = data.fit(data.napsac(rng, count))
+        params, valid = data.fit(data.napsac(rng, count, weights))
         iterations += count
         if not valid.any():
             continue
@@ -304,21 +341,27 @@ def run_gc_ransac(data: Correspondences, *, threshold: float, conf: float, spati
         top = int(np.argmax(scores))
         if scores[top] <= best_score:
             continue
-        best, best_score = _local_optimisation(data, params[top], scores[top], scoring, rng,
-                                               spatial_coherence_weight=spatial_coherence_weight)
+        best, best_score = _local_optimisation(
+            data, params[top], scores[top], scoring, rng, spatial_coherence_weight=spatial_coherence_weight
+        )
         inlier_ratio = np.count_nonzero(data.sq_residuals(best[None])[0] < truncated) / n_points
         bound = iteration_bound(inlier_ratio, m, conf)
         required = int(np.clip(np.ceil(bound) + 1 if np.isfinite(bound) else max_iters, min_iters, max_iters))
     if best is None:
         return None, np.zeros(n_points, dtype=bool), iterations
     best, _ = _polish(data, best, best_score, scoring)
-    inliers = graph_cut_inliers(data.sq_residuals(best[None])[0], data.edges, threshold=threshold,
-                                spatial_coherence_weight=spatial_coherence_weight)
+    inliers = graph_cut_inliers(
+        data.sq_residuals(best[None])[0],
+        data.edges,
+        threshold=threshold,
+        spatial_coherence_weight=spatial_coherence_weight,
+    )
     return best, inliers, iterations
 
 
-def check_fitting_parameters(*, threshold, conf, spatial_coherence_weight, max_iters, min_iters=0,
-                             scoring_exponent=2) -> None:
+def check_fitting_parameters(
+    *, threshold, conf, spatial_coherence_weight, max_iters, min_iters=0, scoring_exponent=1
+) -> None:
     """Raise :class:`ConfigError` naming the first out-of-range robust-fitting parameter."""
     if not threshold > 0:
         raise ConfigError(f"threshold must be positive, got {threshold}")
@@ -346,7 +389,7 @@ def gc_ransac(
     max_iters: int = 1000,
     min_iters: int = 20,
     compound_preference=None,
-    scoring_exponent: float = 2,
+    scoring_exponent: float = 1,
     rng=None,
 ):
     """Robustly fit one motion model to feature correspondences with GC-RANSAC.
@@ -396,15 +439,24 @@ def gc_ransac(
         ([100.0, -200.0], 40)
     """
     settings = {"threshold": threshold, "conf": conf, "spatial_coherence_weight": spatial_coherence_weight}
-    check_fitting_parameters(**settings, max_iters=max_iters, min_iters=min_iters,
-                             scoring_exponent=scoring_exponent)
-    data = Correspondences.build(src, dst, dt, model, neighborhood_ball_radius=neighborhood_ball_radius,
-                                 neighbors=neighbors)
+    check_fitting_parameters(
+        **settings, max_iters=max_iters, min_iters=min_iters, scoring_exponent=scoring_exponent
+    )
+    data = Correspondences.build(
+        src, dst, dt, model, neighborhood_ball_radius=neighborhood_ball_radius, neighbors=neighbors
+    )
     if compound_preference is not None:
         compound_preference = np.asarray(compound_preference, dtype=np.float64)
         if compound_preference.shape != (data.n_points,):
-            raise ShapeError(f"compound_preference must have shape ({data.n_points},), "
-                             f"got {compound_preference.shape}")
-    return run_gc_ransac(data, **settings, max_iters=int(max_iters), min_iters=int(min_iters),
-                         compound_preference=compound_preference, scoring_exponent=scoring_exponent,
-                         rng=np.random.default_rng(rng))
+            raise ShapeError(
+                f"compound_preference must have shape ({data.n_points},), got {compound_preference.shape}"
+            )
+    return run_gc_ransac(
+        data,
+        **settings,
+        max_iters=int(max_iters),
+        min_iters=int(min_iters),
+        compound_preference=compound_preference,
+        scoring_exponent=scoring_exponent,
+        rng=np.random.default_rng(rng),
+    )

@@ -4,7 +4,8 @@ Progressive-X (Barath and Matas, ICCV 2019) interleaves two steps:
 
 * **proposal**: GC-RANSAC (:mod:`evseg_torch.level_one.gc_ransac`) with a quality that counts only the
   data the instances found so far do not explain (the compound-model-aware score), so every call
-  proposes a not-yet-seen motion;
+  proposes a not-yet-seen motion; its NAPSAC samples are drawn mostly among those unexplained data,
+  which makes the iteration budget below, computed on them, the right one;
 * **optimisation**: PEARL (Isack and Boykov, IJCV 2012) relabels all correspondences among the
   instances and an outlier label by α-expansion (:func:`evseg_torch.graphcut.alpha_expansion.alpha_expansion`)
   with a Potts prior on the neighbourhood graph and a label cost per instance, refits the instances
@@ -118,9 +119,16 @@ def pearl(
         if len(params) == 0:
             return params, np.full(data.n_points, OUTLIER, dtype=np.int64)
         unary = _pearl_unary(data, params, threshold, weight)
-        new_labels = alpha_expansion(unary, data.edges, smoothness=weight, label_cost=label_cost,
-                                     init_labels=labels, max_cycles=MAX_EXPANSION_CYCLES,
-                                     outlier_cost=1.0 - weight, outlier_label_cost=label_cost).labels
+        new_labels = alpha_expansion(
+            unary,
+            data.edges,
+            smoothness=weight,
+            label_cost=label_cost,
+            init_labels=labels,
+            max_cycles=MAX_EXPANSION_CYCLES,
+            outlier_cost=1.0 - weight,
+            outlier_label_cost=label_cost,
+        ).labels
         changed = labels is None or not np.array_equal(new_labels, labels)
         labels = new_labels
         keep = np.bincount(labels[labels >= 0], minlength=len(params)) >= min_inliers
@@ -177,7 +185,7 @@ def progressive_x(
     max_iters: int = 1000,
     minimum_point_number: int = 10,
     maximum_model_number: int = -1,
-    scoring_exponent: float = 2,
+    scoring_exponent: float = 1,
     initial_models=None,
     rng=None,
 ) -> ProgressiveXResult:
@@ -198,8 +206,8 @@ def progressive_x(
         spatial_coherence_weight: Potts weight ``w`` in ``[0, 1]`` of GC-RANSAC's labelling and PEARL.
             0.14 (GC-RANSAC's and Progressive-X's C++ default) rather than pyprogressivex's 0: objects'
             tracks are spatially clustered, which is what the paper's neighbourhood graph exploits.
-        neighborhood_ball_radius: radius in pixels of the neighbourhood graph on ``dst``. 20 px gives
-            about 4-8 neighbours at the 100-300 tracks of a DAVIS window (pyprogressivex's 200 suits
+        neighborhood_ball_radius: radius in pixels of the neighbourhood graph on ``dst``. 15 px gives
+            about 6-12 neighbours at the 200-400 tracks of a DAVIS window (pyprogressivex's 200 suits
             megapixel images).
         maximum_tanimoto_similarity: largest Tanimoto similarity between a proposal's preference
             vector and the compound one; 0.5 (the C++ default) rejects re-proposals of found motions
@@ -210,7 +218,10 @@ def progressive_x(
             object often carries only 10-30 tracks, and an instance must still save ``10 / (1 - w)``
             data cost to pay its label, far more than random outlier tracks support.
         maximum_model_number: stop at this many instances; ``-1`` for no limit.
-        scoring_exponent: power of the support a proposal shares with the compound model.
+        scoring_exponent: power of the support a proposal shares with the compound model. 1 (the
+            paper's Eq. 4 up to its per-point form) rather than Progressive-X's code's 2: an object's
+            affine motion often agrees with a strip of background tracks, and squaring that shared
+            support buries the object's own 10-30 tracks.
         initial_models: historical instances :math:`(M_0, P)` to start from, or ``None``.
         rng: :class:`numpy.random.Generator` or seed; equal seeds give identical results.
 
@@ -244,8 +255,10 @@ def progressive_x(
     if initial_models is not None:
         initial = np.asarray(initial_models, dtype=np.float64)
         if initial.ndim != 2 or initial.shape[1] != model.n_params or not np.isfinite(initial).all():
-            raise ModelError(f"initial_models must be finite ({model.n_params} columns for {model.name}) "
-                             f"of shape (M, {model.n_params}), got {initial.shape}")
+            raise ModelError(
+                f"initial_models must be finite ({model.n_params} columns for {model.name}) "
+                f"of shape (M, {model.n_params}), got {initial.shape}"
+            )
         params = initial.copy()
     labels = np.full(n_points, OUTLIER, dtype=np.int64)
     if n_points < min_inliers:
@@ -268,8 +281,15 @@ def progressive_x(
         budget = int(max_iters) if not np.isfinite(budget) else int(min(max_iters, np.ceil(budget) + 1))
         compound = preference(data.sq_residuals(params), threshold).max(axis=0) if len(params) else None
         proposal, inliers, iterations = run_gc_ransac(
-            data, conf=conf, max_iters=budget, min_iters=0, compound_preference=compound,
-            scoring_exponent=scoring_exponent, rng=rng, **settings)
+            data,
+            conf=conf,
+            max_iters=budget,
+            min_iters=0,
+            compound_preference=compound,
+            scoring_exponent=scoring_exponent,
+            rng=rng,
+            **settings,
+        )
         n_proposals += 1
         n_iterations += iterations
         since_change += iterations

@@ -218,7 +218,6 @@ def test_real_recording_yields_consistent_tracks(real_data):
     assert inliers.mean() > 0.7
 
 
-
 def _exact_track(model, params, src, t_src, t_dst, iterations=30):
     """Where points at ``src`` at ``t_src`` are at ``t_dst`` in a synthetic scene, without approximation.
 
@@ -263,5 +262,18 @@ def test_tracks_follow_true_motions():
         result = extract_correspondences(scene.events, SENSOR, t_ref=scene.t0_us)
         counts.append(len(result))
         rates.append(_agreement(scene, result).mean())
-    assert min(counts) >= 40, counts
-    assert np.average(rates, weights=counts) >= 0.9 and min(rates) >= 0.8, np.round(rates, 3)
+    # The defaults keep every corner the images offer, weak ones too (small objects need them), which
+    # trades some precision for 2-3 times the tracks; level one's robust fit absorbs the rest.
+    assert min(counts) >= 150, counts
+    assert np.average(rates, weights=counts) >= 0.8 and min(rates) >= 0.75, np.round(rates, 3)
+
+
+def test_late_image_corners_add_tracks():
+    scene = make_scene(SENSOR, 0.03, 2, speed_range=(100.0, 600.0), min_relative_speed=150.0, rng=3)
+    both = extract_correspondences(scene.events, SENSOR, t_ref=scene.t0_us)
+    early = extract_correspondences(scene.events, SENSOR, t_ref=scene.t0_us, both_images=False)
+    assert len(both) >= 1.5 * len(early)
+    # The early image's tracks come first and are unchanged; the late ones duplicate none of them.
+    np.testing.assert_array_equal(both.src[: len(early)], early.src)
+    gaps = np.linalg.norm(both.dst[len(early) :, None] - early.dst[None], axis=-1)
+    assert gaps.min() > 3.0

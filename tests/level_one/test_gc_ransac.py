@@ -49,16 +49,36 @@ class TestNapsac:
         for centre, *others in samples.tolist():
             assert all((min(centre, o), max(centre, o)) in linked for o in others)
 
+    def test_weights_steer_samples_to_unexplained_points(self):
+        model, src, dst, dt, truth, _ = make_scene(0, "affine4", 3)
+        data = Correspondences.build(src, dst, dt, model)
+        weights = np.where(truth == 2, 1.0, 0.05)  # object 2 unexplained, the rest explained
+        samples = data.napsac(np.random.default_rng(1), 4000, weights)
+        linked = {tuple(edge) for edge in data.edges.tolist()}
+        assert all((min(a, b), max(a, b)) in linked and a != b for a, b in samples.tolist())
+        eligible = data.degree >= 1
+        expected = weights[eligible & (truth == 2)].sum() / weights[eligible].sum()
+        assert np.mean(truth[samples[:, 0]] == 2) == pytest.approx(expected, abs=0.03)
+        # Neighbours too: most samples centred on object 2 stay on it.
+        on_object = samples[truth[samples[:, 0]] == 2]
+        assert np.mean(truth[on_object[:, 1]] == 2) > 0.9
+
 
 class TestGraphCut:
     def _energy(self, labels, ratio, edges, weight):
         inside = ratio < 1
-        unary = np.where(labels, np.where(inside, 0.0, (1 - weight) * ratio),
-                         np.where(inside, (1 - weight) * (1 - ratio), 0.0)).sum()
+        unary = np.where(
+            labels,
+            np.where(inside, 0.0, (1 - weight) * ratio),
+            np.where(inside, (1 - weight) * (1 - ratio), 0.0),
+        ).sum()
         d = np.minimum(ratio, 1.0)
         i, j = edges.T
-        pair = np.where(labels[i] != labels[j], weight,
-                        np.where(~labels[i] & ~labels[j], 0.5 * weight * (d[i] + d[j]), 0.0))
+        pair = np.where(
+            labels[i] != labels[j],
+            weight,
+            np.where(~labels[i] & ~labels[j], 0.5 * weight * (d[i] + d[j]), 0.0),
+        )
         return unary + pair.sum()
 
     def test_exact_minimum(self):
@@ -68,8 +88,10 @@ class TestGraphCut:
             edges = np.array([e for e in itertools.combinations(range(9), 2) if rng.random() < 0.4])
             found = graph_cut_inliers(sq, edges, threshold=1.5, spatial_coherence_weight=0.3)
             ratio = sq / 5.0625
-            best = min(self._energy(np.array(bits, dtype=bool), ratio, edges, 0.3)
-                       for bits in itertools.product([False, True], repeat=9))
+            best = min(
+                self._energy(np.array(bits, dtype=bool), ratio, edges, 0.3)
+                for bits in itertools.product([False, True], repeat=9)
+            )
             assert self._energy(found, ratio, edges, 0.3) == pytest.approx(best)
 
     def test_zero_weight_is_thresholding(self):
