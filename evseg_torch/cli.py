@@ -263,7 +263,7 @@ def _single_thread() -> None:
 
 
 def _demo(args) -> int:
-    from evseg_torch.metrics import labelling_accuracy, per_object_iou
+    from evseg_torch.metrics import labelling_accuracy, match_clusters, per_object_iou
     from evseg_torch.pipeline import CascadedSegmenter
     from evseg_torch.synthetic import make_scene
     from evseg_torch.viz import fig1_figure, save_figure
@@ -280,8 +280,15 @@ def _demo(args) -> int:
         "mean IMO IoU": float(np.mean(list(ious.values()))),
         "time": f"{result.timings_ms['total']:.0f} ms",
     }
+    # Draw each true layer in the colour of the cluster matched to it, so the two panels compare at a glance.
+    layer_to_cluster = {
+        layer: cluster for cluster, layer in match_clusters(result.labels, scene.labels).items()
+    }
+    spare = iter(range(result.n_clusters, result.n_clusters + len(scene.motions)))
+    colour_of = {layer: layer_to_cluster.get(layer, next(spare)) for layer in range(len(scene.motions))}
+    shown = np.array([colour_of.get(int(v), -1) for v in range(-1, len(scene.motions))])[scene.labels + 1]
     figure = fig1_figure(
-        result, title=f"synthetic scene, seed {args.seed}", metrics=metrics, ground_truth=scene.labels
+        result, title=f"synthetic scene, seed {args.seed}", metrics=metrics, ground_truth=shown
     )
     path = save_figure(figure, args.out / "demo.png")
     (args.out / "metrics.json").write_text(json.dumps({**metrics, "timings_ms": result.timings_ms}, indent=2))
