@@ -1,0 +1,71 @@
+"""Per-module time of the whole pipeline per window, like the paper's Table III.
+
+Synthetic: ``--windows`` 30 ms scenes (180 x 240, 1-3 objects), each segmented cold (level one from
+scratch) and, as the second window of a 60 ms scene, with the previous window's models reused.
+EED: the 30 ms windows of ``eed_occlusions`` streamed with model reuse (skipped if the recording is
+absent). Prints the median milliseconds of features, level one, level two and the total, the CPU and
+the torch thread count.
+
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_pipeline.py [--windows 10 --threads 1]
+"""
+
+import argparse
+import platform
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from evseg_torch import CascadedSegmenter
+from evseg_torch.evaluation.eed import load_eed_sequence
+from evseg_torch.synthetic import make_scene
+
+EED = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "eed_occlusions"
+STAGES = ("features", "level_one", "level_two", "total")
+
+
+def row(name: str, timings: list[dict], events: list[int]) -> str:
+    medians = [np.median([t[s] for t in timings]) for s in STAGES]
+    return f"{name:<28} {len(timings):>4} {int(np.median(events)):>7} " + " ".join(
+        f"{m:>9.1f}" for m in medians
+    )
+
+
+def cpu_name() -> str:
+    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return platform.processor() or "unknown CPU"
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--windows", type=int, default=10)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    print(f"{cpu_name()}, torch threads {torch.get_num_threads()}")
+    header = ("features", "level one", "level two", "total")
+    print(f"{'windows':<28} {'n':>4} {'events':>7} " + " ".join(f"{h:>9}" for h in header))
+    cold, reuse, sizes_cold, sizes_reuse = [], [], [], []
+    for seed in range(args.windows):
+        scene = make_scene((180, 240), 0.06, 1 + seed % 3, rng=seed)
+        segmenter = CascadedSegmenter(scene.sensor_size)
+        first, second = list(segmenter.stream(scene.events, window_ms=30))[:2]
+        cold.append(first.timings_ms)
+        sizes_cold.append(len(first.labels))
+        reuse.append(second.timings_ms)
+        sizes_reuse.append(len(second.labels))
+    print(row("synthetic, cold", cold, sizes_cold))
+    print(row("synthetic, with model reuse", reuse, sizes_reuse))
+    if EED.is_dir():
+        sequence = load_eed_sequence(EED)
+        results = list(CascadedSegmenter(sequence.sensor_size).stream(sequence.events, window_ms=30))
+        print(
+            row("eed_occlusions, streamed", [r.timings_ms for r in results], [len(r.labels) for r in results])
+        )
+    print("paper (i7-8700K, 1 thread):          3       110 (15)   250    363 (268)")
+
+
+if __name__ == "__main__":
+    main()
