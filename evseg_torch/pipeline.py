@@ -122,7 +122,6 @@ class CascadedSegmenter(nn.Module):
             refit_max_events=two.refit_max_events,
             label_tol=two.label_tol,
         )
-        self._rng = np.random.default_rng(cfg.seed)
         # Follows .to(device) and .double(), so level two runs where the caller put the module.
         self.register_buffer("_anchor", torch.zeros(0), persistent=False)
 
@@ -226,7 +225,8 @@ class CascadedSegmenter(nn.Module):
             maximum_model_number=one.maximum_model_number,
             scoring_exponent=one.scoring_exponent,
             initial_models=initial_models,
-            rng=self._rng,
+            # Seeded afresh for every window: a window's labels never depend on the calls before it.
+            rng=np.random.default_rng(cfg.seed),
         )
         after_level_one = time.perf_counter()
         pool = fitted.params if len(fitted.params) else np.zeros((1, self.motion.n_params))

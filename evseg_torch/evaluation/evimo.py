@@ -1,0 +1,226 @@
+"""The EV-IMO IoU protocol (Mitrokhin et al., IROS 2019; reference §3.2), stated exactly.
+
+For each mask of the sequence, at time ``t`` (seconds, the events' time base):
+
+1. Segment the window of ``window_ms`` **centred** on ``t`` (as in :mod:`.eed`: the masks are rendered
+   at ``t``, so the window's events straddle it), with the reference time ``t_ref = t``. A window with
+   fewer than ``min_events`` events, and a mask with no object pixel, are *not evaluated*: they are
+   reported with their reason and left out of every mean.
+2. **Background rule** (as in :mod:`.eed`): the cluster holding the most events is the background; the
+   other clusters are the independently moving objects (IMOs).
+3. **Convex-hull mask IoU** (EMSGC, TNNLS Eq. 11, and the IROS 2021 paper): each IMO cluster's events
+   are warped by its own model to ``t`` (``Segmentation.warped_xy``); the pixels of its compensated count
+   image (σ = 0, warped positions rounded) holding more than ``min_count`` events are kept (EMSGC's
+   output rule, which drops isolated noise), and the cluster's dense mask is the convex hull of those
+   pixels. The predicted mask ``P`` is the union of the IMO clusters' hulls, the ground-truth mask
+   ``G`` is the EV-IMO mask's object pixels (any id > 0), and the score is ``|P ∩ G| / |P ∪ G|``.
+4. **Event-wise IoU** (MOMS, 0-MMS, SpikeMS): on the window's raw, unwarped event pixels,
+   ``P_e`` is the set of pixels holding at least one event of an IMO cluster and ``G_e`` the set of
+   pixels holding at least one event and lying inside ``G``; the score is ``|P_e ∩ G_e| / |P_e ∪ G_e|``
+   (the IoU of the binary 2-D occupancy images of predicted-IMO events and GT-masked events). It is
+   NaN when both sets are empty (no event on the object and none predicted as IMO).
+
+A sequence's score is the mean over its evaluated frames of each IoU. The two definitions give
+different numbers (the convex hull fills the object's interior, the event-wise IoU counts only pixels
+with events), so only the convex-hull IoU compares with the IROS 2021 / EMSGC tables.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from evseg_torch.errors import ShapeError
+from evseg_torch.metrics import convex_hull_mask, mask_iou
+
+CONVEX_HULL_IOU = (
+    "convex-hull mask IoU (IROS 2021 / EMSGC): union of the convex hulls of the IMO clusters' "
+    "motion-compensated events at the mask time vs the EV-IMO mask"
+)
+EVENT_WISE_IOU = (
+    "event-wise IoU (MOMS / 0-MMS / SpikeMS): pixel occupancy of the events predicted as IMO vs "
+    "that of the events inside the EV-IMO mask"
+)
+
+EVALUATED, EMPTY_GT, TOO_FEW_EVENTS = "evaluated", "empty_gt", "too_few_events"
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One EV-IMO mask: its time, whether it was evaluated (``status``) and its two IoUs.
+
+    Attributes:
+        t_s: the mask's time in seconds.
+        status: ``"evaluated"``, ``"empty_gt"`` (the mask holds no object) or ``"too_few_events"``.
+        n_events: events in the window.
+        n_clusters: clusters holding events of the window (0 when it was not segmented).
+        gt_pixels: object pixels of the mask.
+        predicted_pixels: pixels of the predicted convex-hull mask.
+        convex_hull_iou: the convex-hull mask IoU; NaN unless evaluated.
+        event_wise_iou: the event-wise IoU; NaN unless evaluated, or when it is undefined.
+    """
+
+    t_s: float
+    status: str
+    n_events: int
+    n_clusters: int
+    gt_pixels: int
+    predicted_pixels: int
+    convex_hull_iou: float
+    event_wise_iou: float
+
+    @property
+    def evaluated(self) -> bool:
+        return self.status == EVALUATED
+
+
+def background_cluster(labels: np.ndarray) -> int:
+    """The cluster holding the most events (``-1`` when no event is labelled); ties go to the lowest."""
+    labels = np.asarray(labels)
+    assigned = labels[labels >= 0]
+    return int(np.argmax(np.bincount(assigned))) if len(assigned) else -1
+
+
+def predicted_mask(
+    warped_xy: np.ndarray, labels: np.ndarray, sensor_size: tuple[int, int], min_count: float = 2.0
+) -> np.ndarray:
+    """Union of the convex hulls of the IMO clusters' compensated events, :math:`(H, W)` bool.
+
+    Args:
+        warped_xy: each event warped by its cluster's model to the mask time, :math:`(N, 2)`.
+        labels: cluster of each event, :math:`(N,)`, ``-1`` for unassigned; the largest cluster is the
+            background and has no hull.
+        sensor_size: ``(H, W)``.
+        min_count: a compensated pixel counts when more than this many of the cluster's events land on
+            it; warped events outside the image, or not finite, are dropped.
+
+    Returns:
+        The predicted IMO mask.
+    """
+    height, width = sensor_size
+    warped_xy, labels = np.asarray(warped_xy, dtype=np.float64), np.asarray(labels, dtype=np.int64)
+    if warped_xy.shape != (len(labels), 2):
+        raise ShapeError(f"warped_xy must be (N, 2) with labels (N,), got {warped_xy.shape}, {labels.shape}")
+    background = background_cluster(labels)
+    keep = (labels >= 0) & (labels != background) & np.all(np.isfinite(warped_xy), axis=1)
+    pixels = np.rint(warped_xy[keep]).astype(np.int64)
+    inside = (pixels[:, 0] >= 0) & (pixels[:, 0] < width) & (pixels[:, 1] >= 0) & (pixels[:, 1] < height)
+    pixels, owner = pixels[inside], labels[keep][inside]
+    mask = np.zeros((height, width), dtype=bool)
+    if not len(owner):
+        return mask
+    clusters, owner = np.unique(owner, return_inverse=True)
+    counts = np.bincount(owner * (height * width) + pixels[:, 1] * width + pixels[:, 0])
+    dense = np.flatnonzero(counts > min_count)
+    cluster_of, flat = np.divmod(dense, height * width)
+    for k in range(len(clusters)):
+        own = flat[cluster_of == k]
+        if len(own):
+            mask |= convex_hull_mask(np.column_stack([own % width, own // width]), sensor_size)
+    return mask
+
+
+def event_wise_iou(events: np.ndarray, is_imo: np.ndarray, gt_mask: np.ndarray) -> float:
+    """IoU of the pixel occupancy of predicted-IMO events and of events inside the GT mask.
+
+    Args:
+        events: canonical events :math:`(N,)` inside the mask's ``(H, W)``.
+        is_imo: whether each event is predicted to be on an IMO, bool :math:`(N,)`.
+        gt_mask: the ground-truth object mask, bool :math:`(H, W)`.
+
+    Returns:
+        ``|P_e ∩ G_e| / |P_e ∪ G_e|`` (module doc), NaN when both sets are empty.
+    """
+    gt_mask = np.asarray(gt_mask, dtype=bool)
+    is_imo = np.asarray(is_imo, dtype=bool)
+    if is_imo.shape != events.shape:
+        raise ShapeError(f"is_imo must be (N,) like the events, got {is_imo.shape} for {events.shape}")
+    occupied = np.zeros(gt_mask.shape, dtype=bool)
+    predicted = np.zeros(gt_mask.shape, dtype=bool)
+    occupied[events["y"], events["x"]] = True
+    predicted[events["y"][is_imo], events["x"][is_imo]] = True
+    return mask_iou(predicted, occupied & gt_mask)
+
+
+def evaluate_evimo(
+    segmenter,
+    sequence,
+    *,
+    window_ms: float,
+    min_events: int = 500,
+    min_count: float = 2.0,
+    progress: bool = False,
+) -> list[FrameResult]:
+    """Run the protocol of the module doc on one sequence.
+
+    Args:
+        segmenter: ``segmenter(events, t_ref=seconds)`` returning an object with ``labels`` :math:`(N,)`
+            and ``warped_xy`` :math:`(N, 2)` (a :class:`~evseg_torch.pipeline.Segmentation`), built for
+            ``sequence.sensor_size``.
+        sequence: an :class:`~evseg_torch.io.EvimoSequence` (events, masks and mask times).
+        window_ms: length of the window centred on each mask time.
+        min_events: windows with fewer events are not evaluated.
+        min_count: EMSGC's noise rule for the compensated count image (see :func:`predicted_mask`).
+        progress: show a progress bar.
+
+    Returns:
+        One :class:`FrameResult` per mask, in the sequence's order.
+    """
+    from tqdm.auto import tqdm
+
+    events, half_us = sequence.events, round(window_ms * 500)
+    centres = np.rint(np.asarray(sequence.mask_times_s, dtype=np.float64) * 1e6).astype(np.int64)
+    begins = np.searchsorted(events["t"], centres - half_us, side="left")
+    ends = np.searchsorted(events["t"], centres + half_us, side="left")
+    results = []
+    frames = zip(sequence.mask_times_s, sequence.masks, begins, ends, strict=True)
+    for t_s, ids, begin, end in tqdm(list(frames), desc="frames", disable=not progress):
+        gt = ids > 0
+        gt_pixels, window = int(np.count_nonzero(gt)), events[begin:end]
+        status = EMPTY_GT if gt_pixels == 0 else TOO_FEW_EVENTS if len(window) < min_events else EVALUATED
+        if status != EVALUATED:
+            results.append(FrameResult(float(t_s), status, len(window), 0, gt_pixels, 0, np.nan, np.nan))
+            continue
+        segmentation = segmenter(window, t_ref=float(t_s))
+        labels = np.asarray(segmentation.labels)
+        hull = predicted_mask(segmentation.warped_xy, labels, sequence.sensor_size, min_count)
+        is_imo = (labels >= 0) & (labels != background_cluster(labels))
+        results.append(
+            FrameResult(
+                float(t_s),
+                EVALUATED,
+                len(window),
+                len(np.unique(labels[labels >= 0])),
+                gt_pixels,
+                int(np.count_nonzero(hull)),
+                mask_iou(hull, gt),
+                event_wise_iou(window, is_imo, gt),
+            )
+        )
+    return results
+
+
+def summarize_evimo(results: list[FrameResult]) -> dict:
+    """Frame counts and the mean of each IoU over the evaluated frames, each named with its definition.
+
+    Returns:
+        A flat, JSON-ready dict: ``frames``, ``evaluated``, ``empty_gt``, ``too_few_events``,
+        ``convex_hull_iou`` and ``event_wise_iou`` (means in [0, 1], NaN without evaluated frames; the
+        event-wise mean skips frames where it is undefined, counted in ``event_wise_frames``) and the
+        two definitions as ``convex_hull_iou_definition`` and ``event_wise_iou_definition``.
+    """
+    evaluated = [r for r in results if r.evaluated]
+    hull = [r.convex_hull_iou for r in evaluated]
+    event = [r.event_wise_iou for r in evaluated if not np.isnan(r.event_wise_iou)]
+    return {
+        "frames": len(results),
+        "evaluated": len(evaluated),
+        EMPTY_GT: sum(r.status == EMPTY_GT for r in results),
+        TOO_FEW_EVENTS: sum(r.status == TOO_FEW_EVENTS for r in results),
+        "convex_hull_iou": float(np.mean(hull)) if hull else float("nan"),
+        "event_wise_iou": float(np.mean(event)) if event else float("nan"),
+        "event_wise_frames": len(event),
+        "convex_hull_iou_definition": CONVEX_HULL_IOU,
+        "event_wise_iou_definition": EVENT_WISE_IOU,
+    }

@@ -1,0 +1,148 @@
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from evseg_torch.errors import ReaderError
+from evseg_torch.evaluation.eed import (
+    EED_SENSOR_SIZE,
+    BoxResult,
+    cluster_boxes,
+    detection_rate,
+    evaluate_boxes,
+    load_eed_sequence,
+)
+from evseg_torch.events import EVENT_DTYPE
+
+
+def _segmentation(warped_xy, labels, sensor_size=(30, 40)):
+    labels = np.asarray(labels, dtype=np.int64)
+    n_clusters = int(labels.max()) + 1 if len(labels) else 0
+    return SimpleNamespace(
+        labels=labels,
+        warped_xy=np.asarray(warped_xy, dtype=np.float64),
+        n_clusters=n_clusters,
+        sensor_size=sensor_size,
+    )
+
+
+def _events(n, t0_us=0, step_us=10, size=(30, 40), seed=0):
+    rng = np.random.default_rng(seed)
+    events = np.zeros(n, dtype=EVENT_DTYPE)
+    events["t"] = t0_us + step_us * np.arange(n)
+    events["x"], events["y"] = rng.integers(0, size[1], n), rng.integers(0, size[0], n)
+    events["p"] = 1
+    return events
+
+
+def _result(iou, evaluable=True, over_gt=0.0):
+    box = np.array([0.0, 0.0, 1.0, 1.0])
+    return BoxResult(0.0, box, evaluable, 10, box, iou, over_gt, 2)
+
+
+class TestClusterBoxes:
+    def test_dense_pixels_of_non_background_clusters(self):
+        corners = np.array([[5.0, 6.0], [9.0, 6.0], [5.0, 8.0], [9.2, 7.6]])  # rounds onto 4 pixels
+        object_xy = np.repeat(corners, 3, axis=0)
+        noise = np.array([[30.0, 20.0], [30.0, 20.0]])  # 2 events on a pixel: not more than min_count
+        background = np.repeat([[1.0, 1.0]], 20, axis=0)
+        xy = np.concatenate([object_xy, noise, background])
+        labels = np.concatenate([np.full(12, 2), np.full(2, 2), np.full(20, 0)])
+        boxes = cluster_boxes(_segmentation(xy, labels))
+        assert list(boxes) == [2]
+        np.testing.assert_array_equal(boxes[2], [5.0, 6.0, 4.0, 2.0])
+
+    def test_background_is_largest_cluster_whatever_its_label(self):
+        xy = np.concatenate([np.repeat([[3.0, 4.0]], 10, axis=0), np.repeat([[20.0, 10.0]], 4, axis=0)])
+        labels = np.array([1] * 10 + [0] * 4)
+        boxes = cluster_boxes(_segmentation(xy, labels))
+        assert list(boxes) == [0]
+        np.testing.assert_array_equal(boxes[0], [20.0, 10.0, 0.0, 0.0])
+
+    def test_outside_and_sparse_clusters_have_no_box(self):
+        xy = np.concatenate([np.repeat([[-3.0, 4.0], [45.0, 2.0]], 5, axis=0), np.zeros((20, 2))])
+        labels = np.array([1] * 10 + [0] * 20)
+        assert cluster_boxes(_segmentation(xy, labels)) == {}
+        assert cluster_boxes(_segmentation(np.zeros((0, 2)), [])) == {}
+
+    def test_min_count(self):
+        xy = np.concatenate([np.repeat([[3.0, 4.0]], 2, axis=0), np.zeros((5, 2))])
+        labels = np.array([1, 1, 0, 0, 0, 0, 0])
+        assert cluster_boxes(_segmentation(xy, labels)) == {}
+        assert list(cluster_boxes(_segmentation(xy, labels), min_count=1)) == [1]
+
+
+class TestDetectionRate:
+    def test_counts_only_evaluable_boxes(self):
+        results = [_result(0.9, over_gt=0.95), _result(0.5, over_gt=0.8), _result(0.2), _result(1.0, False)]
+        assert [r.detected for r in results] == [True, False, False, False]
+        rate = detection_rate(results)
+        assert rate["boxes"] == 4 and rate["evaluable"] == 3 and rate["detected"] == 1
+        assert rate["detection_rate"] == pytest.approx(100 / 3)
+        assert rate["detection_rate_overlap"] == pytest.approx(200 / 3)
+        assert rate["mean_iou"] == pytest.approx((0.9 + 0.5 + 0.2) / 3)
+
+    def test_nothing_evaluable(self):
+        rate = detection_rate([_result(1.0, False)])
+        assert rate["evaluable"] == 0 and np.isnan(rate["detection_rate"])
+
+
+class TestEvaluateBoxes:
+    def test_centred_window_and_matching(self):
+        events = _events(2000)  # 10 us apart: 0 .. 19.99 ms
+        seen = []
+
+        def stub(window, t_ref):
+            seen.append((window["t"][0], window["t"][-1], t_ref))
+            xy = np.concatenate(
+                [np.repeat([[10.0, 10.0], [20.0, 15.0]], 3, axis=0), np.zeros((len(window) - 6, 2))]
+            )
+            labels = np.r_[np.ones(6, dtype=np.int64), np.zeros(len(window) - 6, dtype=np.int64)]
+            return _segmentation(xy, labels)
+
+        gt = np.array([[10.0, 10.0, 10.0, 5.0], [0.0, 0.0, 5.0, 5.0]])
+        results = evaluate_boxes(stub, events, np.array([0.01, 0.0195]), gt, window_ms=4, min_events=300)
+        assert seen == [(8000, 11990, 0.01)]
+        first, second = results
+        assert first.evaluable and first.n_events == 400 and first.iou == 1.0 and first.detected
+        assert first.intersection_over_gt == 1.0 and first.n_clusters == 2
+        np.testing.assert_array_equal(first.predicted_box, gt[0])
+        assert not second.evaluable and second.n_events == 250 and not second.detected
+
+    def test_no_candidate_box(self):
+        def background_only(window, t_ref):
+            return _segmentation(np.zeros((len(window), 2)), np.zeros(len(window)))
+
+        (result,) = evaluate_boxes(
+            background_only,
+            _events(100),
+            np.array([0.0005]),
+            np.array([[1.0, 1.0, 2.0, 2.0]]),
+            window_ms=1,
+            min_events=10,
+        )
+        assert result.evaluable and result.iou == 0.0 and result.intersection_over_gt == 0.0
+        assert np.isnan(result.predicted_box).all()
+
+
+class TestLoadSequence:
+    def test_absolute_and_relative(self, tmp_path):
+        absolute = tmp_path / "eed_occlusions"
+        absolute.mkdir()
+        (absolute / "events.txt").write_text("100.000001 3 4 1\n100.000002 5 6 0\n")
+        (absolute / "boundingbox.txt").write_text("100.0000015, x= 1, y= 2, w= 3, h= 4\n")
+        sequence = load_eed_sequence(absolute)
+        assert sequence.name == "occlusions" and sequence.sensor_size == EED_SENSOR_SIZE
+        assert sequence.events["t"].tolist() == [100_000_001, 100_000_002]
+        np.testing.assert_array_equal(sequence.boxes, [[1, 2, 3, 4]])
+
+        relative = tmp_path / "eed_what_is_background"
+        relative.mkdir()
+        (relative / "events.txt").write_text("0.000001 3 4 1\n")
+        (relative / "boundingbox_rel.txt").write_text("0.0, x= 1, y= 2, w= 3, h= 4\n")
+        assert load_eed_sequence(relative).box_times_s.tolist() == [0.0]
+
+    def test_missing_events(self, tmp_path):
+        (tmp_path / "boundingbox.txt").write_text("1.0, x= 1, y= 2, w= 3, h= 4\n")
+        with pytest.raises(ReaderError, match="no events file"):
+            load_eed_sequence(tmp_path)
