@@ -41,6 +41,7 @@ EVENT_DTYPE = np.dtype([("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "i1")])
 
 _POLARITY_FIELDS = ("p", "on", "polarity")
 _MAX_COORDINATE = np.iinfo(np.int16).max
+_MAX_SECONDS = 9.2e12  # |t| * 1e6 must stay below 2^63 microseconds
 
 
 def as_events(data, sensor_size: tuple[int, int] | None = None) -> np.ndarray:
@@ -74,9 +75,9 @@ def as_events(data, sensor_size: tuple[int, int] | None = None) -> np.ndarray:
         height, width = check_sensor_size(sensor_size)
         _check_inside(x, width, "x", "W")
         _check_inside(y, height, "y", "H")
-    steps = np.diff(t_us)
-    if np.any(steps < 0):
-        first = int(np.argmax(steps < 0)) + 1
+    backwards = t_us[1:] < t_us[:-1]  # a comparison, not np.diff, which can overflow on huge spans
+    if np.any(backwards):
+        first = int(np.argmax(backwards)) + 1
         raise EventFormatError(
             f"timestamps decrease at event {first} ({t_us[first - 1]} us then {t_us[first]} us); "
             "sort the events by time first, e.g. events[np.argsort(events['t'], kind='stable')]"
@@ -211,8 +212,8 @@ def iter_windows(
         window_us = _positive_us(window_ms, "window_ms")
         stride_us = _positive_us(stride_ms or window_ms, "stride_ms")
     else:
-        size = int(events_per_window)
-        stride = int(stride_events or size)
+        size = _whole(events_per_window, "events_per_window")
+        stride = size if stride_events is None else _whole(stride_events, "stride_events")
         if size <= 0 or stride <= 0:
             raise EventFormatError(f"events_per_window and its stride must be positive, got {size}, {stride}")
     for chunk in _checked_chunks(chunks):
@@ -296,6 +297,16 @@ def to_torch(
     )
 
 
+def _whole(value, name: str) -> int:
+    try:
+        whole = not isinstance(value, bool) and float(value).is_integer()
+    except (TypeError, ValueError):
+        whole = False
+    if not whole:
+        raise EventFormatError(f"{name} must be a whole number, got {value!r}")
+    return int(value)
+
+
 def _time_window(buffer: np.ndarray, offset: int, index: int, start: int, length: int) -> Window:
     begin, end = np.searchsorted(buffer["t"], [start, start + length], side="left")
     return Window(index, buffer[begin:end].copy(), offset + int(begin))
@@ -338,6 +349,8 @@ def _columns(data) -> tuple[np.ndarray, ...]:
     if not np.all(np.isfinite(values)):
         bad = int(np.argmax(~np.all(np.isfinite(values), axis=1)))
         raise EventFormatError(f"events hold NaN or inf (first at row {bad})")
+    if np.any(np.abs(values[:, 0]) >= _MAX_SECONDS):
+        raise EventFormatError(f"timestamps beyond +-{_MAX_SECONDS:.3g} s do not fit int64 microseconds")
     t_us = np.rint(values[:, 0] * 1e6).astype(np.int64)
     return t_us, values[:, 1], values[:, 2], values[:, 3]
 
@@ -355,6 +368,9 @@ def _structured_columns(data: np.ndarray) -> tuple[np.ndarray, ...]:
             f"structured field t must be integer microseconds, got {data.dtype['t']}; "
             "pass seconds as an (N, 4) float array [t_seconds, x, y, p] instead"
         )
+    t = data["t"]
+    if t.dtype.kind == "u" and t.size and t.max() > np.iinfo(np.int64).max:
+        raise EventFormatError("timestamps of 2^63 us or more do not fit int64 microseconds")
     columns = [data["x"], data["y"], data[polarity]]
     for name, column in zip(("x", "y", polarity), columns, strict=True):
         if column.dtype.kind == "f" and not np.all(np.isfinite(column)):
@@ -395,7 +411,12 @@ def _polarity(p: np.ndarray) -> np.ndarray:
 
 
 def _positive_us(milliseconds: float, name: str) -> int:
-    value = round(float(milliseconds) * 1000)
+    try:
+        value = round(float(milliseconds) * 1000)
+    except (TypeError, ValueError, OverflowError):
+        raise EventFormatError(
+            f"{name} must be a positive number of milliseconds, got {milliseconds!r}"
+        ) from None
     if value <= 0:
         raise EventFormatError(f"{name} must be positive, got {milliseconds}")
     return value

@@ -17,14 +17,18 @@ import torch
 from torch import nn
 
 from evseg_torch.config import SegmenterConfig, load_config, replace_config
-from evseg_torch.errors import EventFormatError
+from evseg_torch.errors import ConfigError, EventFormatError
 from evseg_torch.events import as_events, check_sensor_size, iter_windows, to_torch
 from evseg_torch.level_one.features import Correspondences, extract_correspondences
-from evseg_torch.level_one.progressive_x import progressive_x
+from evseg_torch.level_one.progressive_x import ProgressiveXResult, progressive_x
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.motion import MotionModel, make_motion_model
 
 _MAX_SPAN_US = np.iinfo(np.int64).max
+# Corner responses and Lucas-Kanade pyramids need a few pixels each way; smaller sensors skip level one.
+_MIN_FEATURE_SIZE = 16
+# Level two holds several float images of the sensor per model; beyond this it would exhaust memory.
+_MAX_PIXELS = 1 << 24
 
 
 @dataclass(frozen=True)
@@ -98,6 +102,11 @@ class CascadedSegmenter(nn.Module):
     ) -> None:
         super().__init__()
         self.sensor_size = check_sensor_size(sensor_size)
+        if self.sensor_size[0] * self.sensor_size[1] > _MAX_PIXELS:
+            raise ConfigError(
+                f"sensor_size {self.sensor_size} has more than {_MAX_PIXELS} pixels; "
+                "crop or bin the events first"
+            )
         self.config = replace_config(config or SegmenterConfig(), **overrides)
         cfg = self.config
         self.motion: MotionModel = make_motion_model(
@@ -193,6 +202,51 @@ class CascadedSegmenter(nn.Module):
         cfg = self.config
         start = time.perf_counter()
         t_ref_us = _reference_us(events, t_ref)
+        tracks, fitted, after_features = self._level_one(events, t_ref_us, initial_models)
+        after_level_one = time.perf_counter()
+        pool = fitted.params if len(fitted.params) else np.zeros((1, self.motion.n_params))
+        device, dtype = self._device_dtype()
+        batch = to_torch(events, t_ref_us=t_ref_us, device=device, dtype=dtype)
+        with torch.no_grad():
+            two = self.level_two(batch, torch.as_tensor(pool, device=device, dtype=dtype))
+        labels = np.asarray(_numpy(two.labels), dtype=np.int64)
+        models = np.asarray(_numpy(two.params), dtype=np.float64)
+        xy = np.column_stack([events["x"], events["y"]]).astype(np.float64)
+        dt = (events["t"] - t_ref_us) * 1e-6
+        own = models[np.clip(labels, 0, None)]
+        warped = xy - dt[:, None] * (self.motion.jacobian(xy) @ own[:, :, None])[..., 0]
+        end = time.perf_counter()
+        return Segmentation(
+            labels=labels,
+            models=models,
+            motion_model=cfg.motion_model,
+            warped_xy=warped,
+            t_ref=t_ref_us * 1e-6,
+            feature_tracks=tracks,
+            feature_labels=np.asarray(fitted.labels, dtype=np.int64),
+            level_one_models=np.asarray(fitted.params, dtype=np.float64),
+            iwes=np.asarray(_numpy(two.iwes)),
+            energy_history=tuple(two.energy_history),
+            timings_ms={
+                "features": 1e3 * (after_features - start),
+                "level_one": 1e3 * (after_level_one - after_features),
+                "level_two": 1e3 * (end - after_level_one),
+                "total": 1e3 * (end - start),
+            },
+            sensor_size=self.sensor_size,
+            events=events,
+        )
+
+    def _level_one(self, events: np.ndarray, t_ref_us: int, initial_models):
+        """Features and Progressive-X; nothing to track in a window of one instant or on a tiny sensor."""
+        cfg = self.config
+        if events["t"][-1] == events["t"][0] or min(self.sensor_size) < _MIN_FEATURE_SIZE:
+            empty = np.zeros((0, 2))
+            tracks = Correspondences(empty, empty, np.zeros(0), 0.0, 0.0)
+            fitted = ProgressiveXResult(
+                np.zeros((0, self.motion.n_params)), np.zeros(0, dtype=np.int64), 0, 0
+            )
+            return tracks, fitted, time.perf_counter()
         feats = cfg.features
         tracks = extract_correspondences(
             events,
@@ -228,39 +282,7 @@ class CascadedSegmenter(nn.Module):
             # Seeded afresh for every window: a window's labels never depend on the calls before it.
             rng=np.random.default_rng(cfg.seed),
         )
-        after_level_one = time.perf_counter()
-        pool = fitted.params if len(fitted.params) else np.zeros((1, self.motion.n_params))
-        device, dtype = self._device_dtype()
-        batch = to_torch(events, t_ref_us=t_ref_us, device=device, dtype=dtype)
-        with torch.no_grad():
-            two = self.level_two(batch, torch.as_tensor(pool, device=device, dtype=dtype))
-        labels = np.asarray(_numpy(two.labels), dtype=np.int64)
-        models = np.asarray(_numpy(two.params), dtype=np.float64)
-        xy = np.column_stack([events["x"], events["y"]]).astype(np.float64)
-        dt = (events["t"] - t_ref_us) * 1e-6
-        own = models[np.clip(labels, 0, None)]
-        warped = xy - dt[:, None] * (self.motion.jacobian(xy) @ own[:, :, None])[..., 0]
-        end = time.perf_counter()
-        return Segmentation(
-            labels=labels,
-            models=models,
-            motion_model=cfg.motion_model,
-            warped_xy=warped,
-            t_ref=t_ref_us * 1e-6,
-            feature_tracks=tracks,
-            feature_labels=np.asarray(fitted.labels, dtype=np.int64),
-            level_one_models=np.asarray(fitted.params, dtype=np.float64),
-            iwes=np.asarray(_numpy(two.iwes)),
-            energy_history=tuple(two.energy_history),
-            timings_ms={
-                "features": 1e3 * (after_features - start),
-                "level_one": 1e3 * (after_level_one - after_features),
-                "level_two": 1e3 * (end - after_level_one),
-                "total": 1e3 * (end - start),
-            },
-            sensor_size=self.sensor_size,
-            events=events,
-        )
+        return tracks, fitted, after_features
 
     def _device_dtype(self) -> tuple[torch.device, torch.dtype]:
         return self._anchor.device, self._anchor.dtype

@@ -5,8 +5,6 @@ subclasses) with a one-line message: no other exception, no hang, no silent garb
 from fixed seeds at collection, so each has a stable id that names it and a failure replays exactly.
 """
 
-from tokenize import TokenError
-
 import numpy as np
 import pytest
 
@@ -262,40 +260,6 @@ _NPZ_H5_AEDAT = {
 _SEMANTIC_SUFFIX = {"npz": ".npz", "h5": ".h5", "aedat": ".aedat"}
 
 
-# Known reader bugs, reported to the lead with these reproducers; each case is expected to fail in its way
-# until fixed (then it shows as XPASS: drop its entry).
-_TOKEN_ERROR = pytest.mark.xfail(
-    raises=TokenError,
-    strict=False,
-    reason="a garbled .npy header raises tokenize.TokenError, not ReaderError",
-)
-_CAST_WARNING = pytest.mark.xfail(
-    raises=RuntimeWarning,
-    strict=False,
-    reason="times beyond int64 microseconds are cast to -2**63 with only a RuntimeWarning (events._columns)",
-)
-_BAD_STORED_SIZE = pytest.mark.xfail(
-    raises=AssertionError, strict=False, reason="read_sensor_size returns a stored (H, W) without checking it"
-)
-KNOWN_READER_BUGS = {
-    "npy-garbled-1": _TOKEN_ERROR,
-    "npy-prefix-3": _TOKEN_ERROR,
-    "npy-prefix-5": _TOKEN_ERROR,
-    "npz-garbled-2": _TOKEN_ERROR,
-    "h5-garbled-0": _CAST_WARNING,
-    "txt-huge_t": _CAST_WARNING,
-    "txt-t_beyond_int64_us": _CAST_WARNING,
-    "npy-huge_t_seconds": _CAST_WARNING,
-    "npy-t_beyond_int64_us": _CAST_WARNING,
-    "npz-npz_zero_width": _BAD_STORED_SIZE,
-    "npz-npz_negative_height": _BAD_STORED_SIZE,
-    "h5-h5_bad_resolution": _BAD_STORED_SIZE,
-    "npz-npz_size_array": pytest.mark.xfail(
-        raises=TypeError, strict=False, reason="an array 'width' in an .npz escapes as TypeError"
-    ),
-}
-
-
 def _reader_cases():
     cases = [
         (suffix, mutation, seed, f"{suffix[1:]}-{mutation}-{seed}")
@@ -312,7 +276,6 @@ def _reader_cases():
             mutation,
             case,
             id=name,
-            marks=[KNOWN_READER_BUGS[name]] if name in KNOWN_READER_BUGS else [],
         )
         for suffix, mutation, case, name in cases
     ]
@@ -356,9 +319,6 @@ def test_reader(tmp_path, suffix, mutation, case):
     np.testing.assert_array_equal(chunks, events)
 
 
-@pytest.mark.xfail(
-    strict=False, reason="unsigned times beyond int64 wrap to negative ones (events._structured_columns)"
-)
 def test_unsigned_times_beyond_int64_are_rejected(tmp_path):
     data = np.zeros(2, dtype=[("t", "<u8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1")])
     data["t"] = [2**63 + 5, 2**63 + 6]
@@ -437,11 +397,6 @@ def _named_windows():
     }
 
 
-# Sensors with a side of at most 3 pixels crash in level one's corner detection (kornia's reflect padding
-# of the 7-tap blur needs a side of at least 4); owned by level_one/features.py, reported to the lead.
-_TINY_SENSOR = pytest.mark.xfail(raises=RuntimeError, strict=False, reason="level one on a side <= 3 px")
-
-
 def _random_window(seed: int):
     """A seeded random window: size, count, time and space structure all drawn from extremes."""
     rng = np.random.default_rng(seed)
@@ -518,13 +473,10 @@ def _scene_window(seed: int):
 def _segmenter_cases():
     cases = []
     for name, (size, data, kwargs) in _named_windows().items():
-        marks = [_TINY_SENSOR] if min(size) <= 3 else []
-        cases.append(pytest.param(size, data, kwargs, id=f"named-{name}", marks=marks))
+        cases.append(pytest.param(size, data, kwargs, id=f"named-{name}"))
     for seed in range(60):
         size, data, kwargs, name = _random_window(seed)
-        # A window at one time is rejected before level one looks at the image.
-        marks = [_TINY_SENSOR] if min(size) <= 3 and data["t"][0] != data["t"][-1] else []
-        cases.append(pytest.param(size, data, kwargs, id=f"random-{seed}-{name}", marks=marks))
+        cases.append(pytest.param(size, data, kwargs, id=f"random-{seed}-{name}"))
     for seed in range(16):
         size, data, kwargs, name = _scene_window(seed)
         cases.append(pytest.param(size, data, kwargs, id=f"scene-{seed}-{name}"))
@@ -569,11 +521,6 @@ def test_segmenter_errors_are_ours():
     assert issubclass(EventFormatError, EvsegError) and issubclass(ModelError, EvsegError)
 
 
-# iter_windows converts window lengths with int(), so NaN and inf escape as ValueError / OverflowError
-# (evseg_torch/events.py, _positive_us), reported to the lead.
-_RAW_WINDOW_ERROR = pytest.mark.xfail(
-    raises=(ValueError, OverflowError), strict=False, reason="NaN/inf window"
-)
 STREAM_CASES = {
     "default_windows": {},
     "ten_microsecond_windows": {"window_ms": 0.01},
@@ -586,8 +533,8 @@ STREAM_CASES = {
     "zero_event_windows": {"events_per_window": 0},
     "billion_event_windows": {"events_per_window": 10**9},
     "both_kinds": {"window_ms": 10, "events_per_window": 500},
-    "nan_window": pytest.param({"window_ms": float("nan")}, marks=_RAW_WINDOW_ERROR),
-    "inf_window": pytest.param({"window_ms": float("inf")}, marks=_RAW_WINDOW_ERROR),
+    "nan_window": {"window_ms": float("nan")},
+    "inf_window": {"window_ms": float("inf")},
 }
 
 

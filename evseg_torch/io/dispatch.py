@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
-from evseg_torch.events import as_events
+from evseg_torch.events import as_events, check_sensor_size
 from evseg_torch.io import aedat2, aedat4, hdf5, numpy_files, text
 from evseg_torch.io.guard import existing_file, reading
 
@@ -142,7 +142,13 @@ def read_sensor_size(path) -> tuple[int, int] | None:
     """
     path, fmt = _resolve(path)
     with reading(path, fmt.what):
-        return fmt.sensor_size(path)
+        size = fmt.sensor_size(path)
+    if size is None:
+        return None
+    try:
+        return check_sensor_size(size)
+    except EventFormatError as err:
+        raise ReaderError(f"{path}: the stored sensor size is invalid: {err}") from None
 
 
 def _resolve(path) -> tuple[Path, _Format]:

@@ -8,6 +8,7 @@ starts with the file's path, never a raw traceback from NumPy, h5py, zipfile or 
 from __future__ import annotations
 
 import pickle
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Iterator
@@ -25,6 +26,7 @@ _LIBRARY_ERRORS = (
     KeyError,
     RuntimeError,
     zipfile.BadZipFile,
+    tokenize.TokenError,  # numpy parses .npy headers with the tokenize module
     zlib.error,
     pickle.UnpicklingError,
 )

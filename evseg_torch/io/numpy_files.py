@@ -81,7 +81,12 @@ def sensor_size_npz(path: Path) -> tuple[int, int] | None:
     """``(H, W)`` from ``height``/``width`` or an EV-IMO ``mask``'s shape, else ``None``."""
     with open_npz(path) as npz:
         if "width" in npz.files and "height" in npz.files:
-            return int(npz["height"]), int(npz["width"])
+            height, width = np.asarray(npz["height"]), np.asarray(npz["width"])
+            if height.size != 1 or width.size != 1:
+                raise ReaderError(
+                    f"height and width must be single numbers, got shapes {height.shape}, {width.shape}"
+                )
+            return int(height.item()), int(width.item())
         if "mask" in npz.files:
             shape = member_shape(npz, "mask")
             if len(shape) == 3:
