@@ -159,3 +159,24 @@ def test_demo_writes_figure_and_metrics(tmp_path):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert 0.0 <= metrics["accuracy"] <= 1.0
     assert (tmp_path / "demo.png").stat().st_size > 10_000
+
+
+def test_workers_segment_files_in_parallel(tmp_path):
+    first, second = _scene_file(tmp_path, seed=0), _scene_file(tmp_path, seed=1)
+    out = tmp_path / "out"
+    args = [
+        "--quiet",
+        "segment",
+        str(first),
+        str(second),
+        "--out",
+        str(out),
+        "--workers",
+        "2",
+        "--window-ms",
+        "40",
+    ]
+    assert main(args) == 0
+    for path in (first, second):
+        labels = np.load(out / path.stem / "labels.npz")["labels"]
+        assert labels.shape == (len(load_events(path)),) and labels.max() >= 0
