@@ -4,8 +4,8 @@ Windows are 30 ms synthetic scenes (``evseg_torch.synthetic.make_scene``) of abo
 180 x 240 sensor with ``--objects`` moving objects, affine4 motions. The pool is the true models perturbed by
 about a pixel of displacement plus ``--spurious`` random models (3-4 models in all by default), as level one
 would hand it over. Prints, per stage, the median over windows and repeats of the time per window (summed
-over the outer iterations), the median number of outer iterations, the graph's size, and
-``torch.get_num_threads()``.
+over the outer iterations), the median number of outer iterations, the graph's size in events and in
+sites, and ``torch.get_num_threads()``.
 
 Threads: level two's tensors are small (K x 30k events, K images of 180 x 240), so intra-op threads gain
 little, and on a loaded machine (other processes on the 2 cores) OpenMP's spinning workers make every op
@@ -14,6 +14,10 @@ up to 100x slower). Hence ``--threads 1`` by default; ``OMP_WAIT_POLICY=PASSIVE`
 before Python starts) removes most of the penalty for 2 threads (0.8 s).
 
     .venv/bin/python benchmarks/bench_level_two.py [--events 30000 --windows 3 --repeats 2 --threads 1]
+
+The ``graph`` stage includes the site graph and the graph cut's node numbering (once per window).
+Comparisons: ``--site-time-slices 0`` labels events (EMSGC's graph), ``--warm-max-iter 10`` refits fully
+every round, ``--n-iter-labeling 1`` runs one α-expansion cycle per labelling.
 """
 
 import argparse
@@ -24,7 +28,7 @@ import torch
 
 from evseg_torch.events import to_torch
 from evseg_torch.level_two.data_term import data_cost
-from evseg_torch.level_two.graph import event_graph
+from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.synthetic import make_scene
 
@@ -47,7 +51,12 @@ def main():
     parser.add_argument("--windows", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (0: torch's default)")
-    parser.add_argument("--max-iter", type=int, default=10, help="refit iterations (L-BFGS)")
+    parser.add_argument("--max-iter", type=int, default=10, help="first refit's iterations (L-BFGS)")
+    parser.add_argument("--warm-max-iter", type=int, default=3, help="later refits' iterations")
+    parser.add_argument("--n-iter-labeling", type=int, default=2, help="α-expansion cycles per labelling")
+    parser.add_argument(
+        "--site-time-slices", type=int, default=1, help="time slices of the graph-cut sites (0: events)"
+    )
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -55,15 +64,24 @@ def main():
 
     stages = ("graph", "data_term", "labelling", "refit", "images")
     per_stage = {name: [] for name in stages}
-    totals, rounds, graph_only, cost_only = [], [], [], []
+    totals, rounds, graph_only, site_only, cost_only = [], [], [], [], []
     for window in range(args.windows):
         scene, model, pool = make_window(args.events, args.objects, args.spurious, seed=window)
         events = to_torch(scene.events)
-        segmenter = GraphCutContrastSegmenter(model, (180, 240), max_iter=args.max_iter)
+        segmenter = GraphCutContrastSegmenter(
+            model,
+            (180, 240),
+            max_iter=args.max_iter,
+            warm_max_iter=args.warm_max_iter,
+            n_iter_labeling=args.n_iter_labeling,
+            site_time_slices=args.site_time_slices or None,
+        )
         edges, weights = event_graph(events)
+        sites, site_edges, _ = site_graph(events, time_slices=max(args.site_time_slices, 1))
         print(
             f"window {window}: N={len(events)} K={pool.shape[0]} edges={len(edges)} "
-            f"(weight sum {weights.sum():.0f}, {len(edges) / len(events):.2f} edges per event)"
+            f"(weight sum {weights.sum():.0f}, {len(edges) / len(events):.2f} edges per event); "
+            f"{sites.max() + 1} sites, {len(site_edges)} site edges"
         )
         segmenter(events, pool)  # warm-up
         for _ in range(args.repeats):
@@ -77,6 +95,9 @@ def main():
             event_graph(events)
             graph_only.append(1e3 * (time.perf_counter() - start))
             start = time.perf_counter()
+            site_graph(events, time_slices=max(args.site_time_slices, 1))
+            site_only.append(1e3 * (time.perf_counter() - start))
+            start = time.perf_counter()
             with torch.no_grad():
                 data_cost(model, events, pool)
             cost_only.append(1e3 * (time.perf_counter() - start))
@@ -89,7 +110,8 @@ def main():
         print(f"  {name:<10} {np.median(per_stage[name]):8.1f}")
     print(f"  {'total':<10} {np.median(totals):8.1f}")
     print(
-        f"one event_graph call: {np.median(graph_only):.1f} ms; one data_cost call (K={pool.shape[0]}): "
+        f"one event_graph call: {np.median(graph_only):.1f} ms; one site_graph call: "
+        f"{np.median(site_only):.1f} ms; one data_cost call (K={pool.shape[0]}): "
         f"{np.median(cost_only):.1f} ms"
     )
 

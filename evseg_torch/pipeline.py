@@ -130,6 +130,8 @@ class CascadedSegmenter(nn.Module):
             data_normalization=two.data_normalization,
             refit_max_events=two.refit_max_events,
             label_tol=two.label_tol,
+            warm_max_iter=two.warm_max_iter,
+            site_time_slices=two.site_time_slices,
         )
         # Follows .to(device) and .double(), so level two runs where the caller put the module.
         self.register_buffer("_anchor", torch.zeros(0), persistent=False)

@@ -3,8 +3,17 @@
 from evseg_torch.graphcut.alpha_expansion import (
     ExpansionResult,
     GraphCutError,
+    PottsGraph,
     alpha_expansion,
     labeling_energy,
+    potts_graph,
 )
 
-__all__ = ["ExpansionResult", "GraphCutError", "alpha_expansion", "labeling_energy"]
+__all__ = [
+    "ExpansionResult",
+    "GraphCutError",
+    "PottsGraph",
+    "alpha_expansion",
+    "labeling_energy",
+    "potts_graph",
+]

@@ -9,7 +9,7 @@ from evseg_torch.level_two.contrast import (
     normalized_variance,
 )
 from evseg_torch.level_two.data_term import DataCost, data_cost, sample_bilinear
-from evseg_torch.level_two.graph import event_graph, pixel_adjacency
+from evseg_torch.level_two.graph import event_graph, pixel_adjacency, site_graph
 from evseg_torch.level_two.iwe import ImageOfWarpedEvents, splat_events, warp_events, warped_iwe
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter, LevelTwoResult
 
@@ -28,6 +28,7 @@ __all__ = [
     "normalized_variance",
     "pixel_adjacency",
     "sample_bilinear",
+    "site_graph",
     "splat_events",
     "warp_events",
     "warped_iwe",

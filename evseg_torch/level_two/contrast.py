@@ -60,7 +60,9 @@ def image_variance(iwe: Tensor, reference: Tensor | None = None) -> Tensor:
         torch.Size([3])
     """
     _check_image(iwe, "iwe")
-    return iwe.flatten(-2).var(dim=-1, correction=0)
+    flat = iwe.flatten(-2)
+    # Written out: torch.var's forward and backward take twice as long on CPU.
+    return (flat - flat.mean(dim=-1, keepdim=True)).square().mean(dim=-1)
 
 
 def normalized_variance(iwe: Tensor, reference: Tensor) -> Tensor:

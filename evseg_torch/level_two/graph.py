@@ -26,19 +26,29 @@ Differences from the release, chosen deliberately:
   events at the same pixel.
 * Duplicate events (same pixel and timestamp) are kept as separate sites; EMSGC drops them.
 
+Sites (:func:`site_graph`, a deviation from EMSGC used by level two by default): the events of one pixel
+within one slice of the window's time span are merged into one site, the edges between two sites adding
+up. Same-pixel events are never joined by the graph above, so without merging each of them is labelled
+only through its spatial neighbours; merged, they share one label. On 30k-event synthetic windows
+one slice (one site per active pixel) leaves 12–15k sites and 36–44k site edges (from ~30k events and
+~155k edges), so each maximum flow is 4–6 times faster, and the graph-cut energy of the labelling
+rises by only 0.0–0.3%.
+
 Everything is vectorised NumPy: one sort of the events by ``(pixel, time)`` and one ``searchsorted``
 for all lookups.
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import cv2
 import numpy as np
 
-from evseg_torch.errors import ShapeError
+from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EVENT_DTYPE, EventBatch, check_sensor_size
 
-__all__ = ["event_graph", "pixel_adjacency"]
+__all__ = ["event_graph", "pixel_adjacency", "site_graph"]
 
 
 def pixel_adjacency(pixels_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -69,8 +79,8 @@ def pixel_adjacency(pixels_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if count < 2:
         return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)
     width, height = int(pixels[:, 0].max()) + 1, int(pixels[:, 1].max()) + 1
-    keys = pixels[:, 1] * width + pixels[:, 0]
-    order = np.argsort(keys)
+    index = np.zeros(height * width, dtype=np.int64)
+    index[pixels[:, 1] * width + pixels[:, 0]] = np.arange(count)
     subdivision = cv2.Subdiv2D((0, 0, width, height))
     subdivision.insert(pixels.astype(np.float32))
     corners = np.asarray(subdivision.getTriangleList()).reshape(-1, 3, 2).astype(np.int64)
@@ -78,10 +88,11 @@ def pixel_adjacency(pixels_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         along = np.lexsort((pixels[:, 1], pixels[:, 0]))
         pairs = np.sort(np.column_stack([along[:-1], along[1:]]), axis=1)
         return pairs, np.ones(count - 1, dtype=np.int64)
-    vertex = order[np.searchsorted(keys[order], corners[..., 1] * width + corners[..., 0])]
-    sides = np.concatenate([vertex[:, [0, 1]], vertex[:, [1, 2]], vertex[:, [2, 0]]])
-    sides = np.sort(sides, axis=1)
-    pair_keys, multiplicity = np.unique(sides[:, 0] * count + sides[:, 1], return_counts=True)
+    vertex = index[corners[..., 1] * width + corners[..., 0]]
+    ends, other_ends = vertex.T.ravel(), vertex[:, [1, 2, 0]].T.ravel()
+    pair_keys, multiplicity = np.unique(
+        np.minimum(ends, other_ends) * count + np.maximum(ends, other_ends), return_counts=True
+    )
     return np.column_stack([pair_keys // count, pair_keys % count]), multiplicity.astype(np.int64)
 
 
@@ -118,9 +129,120 @@ def event_graph(
         ([[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]], [1.0, 1.0, 1.0, 1.0, 1.0])
     """
     xy, t = _coordinates_and_times(events, t, sensor_size)
+    if xy.shape[0] < 2:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.float64)
+    found = _lookups(xy, t)
+    tail, head = found.tail[found.first], found.head[found.first]
+    weights = [found.multiplicity[found.pair[found.first]].astype(np.float64)]
+    if temporal_edges:
+        tail, head = np.concatenate([tail, found.earlier]), np.concatenate([head, found.later])
+        weights.append(np.ones(len(found.earlier)))
+    count = xy.shape[0]
+    pair_key = np.minimum(tail, head) * count + np.maximum(tail, head)
+    order = np.argsort(pair_key)
+    edges = np.column_stack([pair_key[order] // count, pair_key[order] % count])
+    return edges, np.concatenate(weights)[order]
+
+
+def site_graph(
+    events,
+    t=None,
+    sensor_size: tuple[int, int] | None = None,
+    *,
+    time_slices: int = 1,
+    temporal_edges: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`event_graph` with the events merged into sites: same pixel, same slice of the window.
+
+    The window's time span ``[t_min, t_max]`` is cut into ``time_slices`` equal slices; the events of
+    one pixel within one slice form a site. Edges between the events of two sites add up into one
+    edge between the sites; edges within a site are dropped. A labelling that gives every event its
+    site's label then has the same Potts energy on both graphs, and summing the events' data costs
+    per site gives the same data energy, so a graph cut on the sites minimises the event graph's
+    energy over such labellings (level two's deviation from EMSGC, see
+    :mod:`~evseg_torch.level_two.segmenter`). The event edges are counted per site pair with one
+    ``bincount``, never listed or sorted.
+
+    Args:
+        events, t, sensor_size, temporal_edges: as in :func:`event_graph`.
+        time_slices: number of slices of the window's time span, at least 1.
+
+    Returns:
+        ``(sites, edges, weights)``: int64 :math:`(N,)` site index of every event in ``[0, S)`` (sites
+        ordered by pixel, row-major, then slice), int64 :math:`(E, 2)` site pairs with
+        ``edges[:, 0] < edges[:, 1]``, each listed once, and float64 :math:`(E,)` positive weights.
+
+    Raises:
+        ShapeError: as :func:`event_graph`.
+        ConfigError: if ``time_slices`` is not a positive integer.
+
+    Examples:
+        >>> xy = np.array([[0, 0], [1, 0], [0, 0], [1, 0]])
+        >>> sites, edges, weights = site_graph(xy, np.array([0.0, 1.0, 2.0, 3.0]))
+        >>> sites.tolist(), edges.tolist(), weights.tolist()
+        ([0, 1, 0, 1], [[0, 1]], [3.0])
+    """
+    if isinstance(time_slices, bool) or int(time_slices) != time_slices or time_slices < 1:
+        raise ConfigError(f"time_slices must be a positive integer, got {time_slices!r}")
+    slices = int(time_slices)
+    xy, t = _coordinates_and_times(events, t, sensor_size)
     count = xy.shape[0]
     if count < 2:
-        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.float64)
+        return np.zeros(count, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0)
+    found = _lookups(xy, t)
+    slot = np.zeros(count, dtype=np.int64)
+    span = float(t.max() - t.min())
+    if span > 0 and slices > 1:
+        slot = np.minimum(((t - t.min()) * (slices / span)).astype(np.int64), slices - 1)
+    site_keys, sites = np.unique(found.pixel * slices + slot, return_inverse=True)
+
+    # Spatial edges, counted per (adjacent pixel pair, slice at its first pixel, slice at its second)
+    # with one bincount: key = pair * slices^2 + slot_low * slices + slot_high.
+    tail_is_low = found.pixel[found.tail] == found.pixel_pairs[found.pair, 0]
+    slot_low = np.where(tail_is_low, slot[found.tail], slot[found.head])
+    slot_high = np.where(tail_is_low, slot[found.head], slot[found.tail])
+    counts = np.bincount(
+        (found.pair * slices + slot_low) * slices + slot_high,
+        weights=found.first,
+        minlength=len(found.multiplicity) * slices**2,
+    )
+    key = np.flatnonzero(counts)
+    pair, slot_low, slot_high = key // slices**2, key // slices % slices, key % slices
+    low = np.searchsorted(site_keys, found.pixel_pairs[pair, 0] * slices + slot_low)
+    high = np.searchsorted(site_keys, found.pixel_pairs[pair, 1] * slices + slot_high)
+    edges = [np.column_stack([low, high])]
+    weights = [counts[key] * found.multiplicity[pair]]
+    if temporal_edges:
+        low, high = sites[found.earlier], sites[found.later]
+        between = low != high  # consecutive events of one pixel in different slices
+        pair_key, multiplicity = np.unique(low[between] * len(site_keys) + high[between], return_counts=True)
+        edges.append(np.column_stack([pair_key // len(site_keys), pair_key % len(site_keys)]))
+        weights.append(multiplicity.astype(np.float64))
+    return sites, np.concatenate(edges), np.concatenate(weights).astype(np.float64)
+
+
+class _Lookups(NamedTuple):
+    """The nearest-in-time lookups of :func:`event_graph`, before they become edges.
+
+    Every spatial candidate is an event ``tail``, an event ``head`` at a pixel adjacent to the tail's
+    (the latest before or the earliest after the tail), and the index ``pair`` of the two pixels in
+    ``pixel_pairs``. A pair found from both of its events appears twice; ``first`` is False on one copy.
+    ``earlier``, ``later`` are consecutive events at the same pixel.
+    """
+
+    pixel: np.ndarray  # (N,) index of each event's pixel among the active pixels (row-major order)
+    pixel_pairs: np.ndarray  # (A, 2) Delaunay-adjacent pixel indices, low < high
+    multiplicity: np.ndarray  # (A,)
+    tail: np.ndarray
+    head: np.ndarray
+    pair: np.ndarray
+    first: np.ndarray
+    earlier: np.ndarray
+    later: np.ndarray
+
+
+def _lookups(xy: np.ndarray, t: np.ndarray) -> _Lookups:
+    count = xy.shape[0]
     width = int(xy[:, 0].max()) + 1
     pixel_keys, pixel = np.unique(xy[:, 1] * width + xy[:, 0], return_inverse=True)
     n_pixels = pixel_keys.shape[0]
@@ -134,43 +256,48 @@ def event_graph(
     key = pixel * count + rank
     order = np.argsort(key)
     sorted_key = key[order]
+    same_pixel = sorted_key[1:] // count == sorted_key[:-1] // count
+    # The previous event at the same pixel, or -1.
+    previous = np.full(count, -1, dtype=np.int64)
+    previous[order[1:][same_pixel]] = order[:-1][same_pixel]
 
     # Directed pixel adjacency as CSR, so that each event expands to its pixel's neighbour list.
     source = np.concatenate([pixel_pairs[:, 0], pixel_pairs[:, 1]])
-    target = np.concatenate([pixel_pairs[:, 1], pixel_pairs[:, 0]])[np.argsort(source, kind="stable")]
+    by_source = np.argsort(source, kind="stable")
+    target = np.concatenate([pixel_pairs[:, 1], pixel_pairs[:, 0]])[by_source]
+    target_pair = np.concatenate([np.arange(len(pixel_pairs))] * 2)[by_source]
     start = np.zeros(n_pixels + 1, dtype=np.int64)
     np.cumsum(np.bincount(source, minlength=n_pixels), out=start[1:])
-    degree = start[pixel + 1] - start[pixel]
-    event = np.repeat(np.arange(count, dtype=np.int64), degree)
+    # Events expand in (pixel, time) order, which keeps the searchsorted queries below close together
+    # in memory (about twice as fast as in event order).
+    sorted_pixel = pixel[order]
+    degree = start[sorted_pixel + 1] - start[sorted_pixel]
+    event = np.repeat(order, degree)
     slot = np.arange(event.shape[0], dtype=np.int64) + np.repeat(
-        start[pixel] - (np.cumsum(degree) - degree), degree
+        start[sorted_pixel] - (np.cumsum(degree) - degree), degree
     )
     neighbour_pixel = target[slot]
     after = np.searchsorted(sorted_key, neighbour_pixel * count + rank[event])
     before = after - 1
     ok_before = (before >= 0) & (sorted_key[np.maximum(before, 0)] // count == neighbour_pixel)
     ok_after = (after < count) & (sorted_key[np.minimum(after, count - 1)] // count == neighbour_pixel)
-    tails = [event[ok_before], event[ok_after]]
-    heads = [order[before[ok_before]], order[after[ok_after]]]
-    if temporal_edges:
-        same = sorted_key[1:] // count == sorted_key[:-1] // count
-        tails.append(order[:-1][same])
-        heads.append(order[1:][same])
-    tail, head = np.concatenate(tails), np.concatenate(heads)
-    # A pair found from both of its events is one edge.
-    pair_key = np.sort(np.minimum(tail, head) * count + np.maximum(tail, head))
-    first = np.ones(pair_key.shape[0], dtype=bool)
-    first[1:] = pair_key[1:] != pair_key[:-1]
-    pair_key = pair_key[first]
-    edges = np.column_stack([pair_key // count, pair_key % count])
-    # The weight is the Delaunay multiplicity of the pair's pixels; same-pixel pairs weigh 1.
-    low, high = pixel[edges[:, 0]], pixel[edges[:, 1]]
-    spatial = low != high
-    lo, hi = np.minimum(low[spatial], high[spatial]), np.maximum(low[spatial], high[spatial])
-    adjacency_keys = pixel_pairs[:, 0] * n_pixels + pixel_pairs[:, 1]
-    weights = np.ones(edges.shape[0], dtype=np.float64)
-    weights[spatial] = multiplicity[np.searchsorted(adjacency_keys, lo * n_pixels + hi)]
-    return edges, weights
+    found_before = order[before[ok_before]]
+    tail_before = event[ok_before]
+    # The tail's "latest before" f is also found from f as its "earliest after" exactly when no event of
+    # the tail's pixel lies between them: keep that pair from f's side only.
+    earlier_own = previous[tail_before]
+    mutual = (earlier_own < 0) | (rank[np.maximum(earlier_own, 0)] < rank[found_before])
+    return _Lookups(
+        pixel,
+        pixel_pairs,
+        multiplicity,
+        np.concatenate([tail_before, event[ok_after]]),
+        np.concatenate([found_before, order[after[ok_after]]]),
+        np.concatenate([target_pair[slot[ok_before]], target_pair[slot[ok_after]]]),
+        np.concatenate([~mutual, np.ones(int(ok_after.sum()), dtype=bool)]),
+        order[:-1][same_pixel],
+        order[1:][same_pixel],
+    )
 
 
 def _coordinates_and_times(events, t, sensor_size) -> tuple[np.ndarray, np.ndarray]:

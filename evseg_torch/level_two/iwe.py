@@ -69,7 +69,11 @@ def warp_events(model: MotionModel, xy: Tensor, t: Tensor, params: Tensor) -> Te
         raise ShapeError(
             f"params must be (..., {model.n_params}) for the {model.name} model, got {tuple(params.shape)}"
         )
-    velocity = (model.jacobian(xy) @ params[..., None, :, None])[..., 0]
+    jacobian = model.jacobian(xy)
+    # A sum over the few parameters: broadcast matmul runs one tiny product per event and model.
+    velocity = jacobian[..., 0] * params[..., None, 0, None]
+    for index in range(1, model.n_params):
+        velocity = torch.addcmul(velocity, jacobian[..., index], params[..., None, index, None])
     return xy - t[..., None] * velocity
 
 
@@ -122,13 +126,15 @@ def splat_events(
             ) from None
     _check_blur(sigma, truncate)
 
-    index, tap_weights = _bilinear_taps(xy, weights, height, width)  # (..., N, 4) each
-    shape = (*batch_shape, xy.shape[-2], 4)
+    shape = (*batch_shape, xy.shape[-2])
     n_images, padded_size = math.prod(batch_shape), (height + 4) * (width + 4)
-    offsets = torch.arange(n_images, device=xy.device).view(*batch_shape, 1, 1) * padded_size
-    index = (index.expand(shape) + offsets).reshape(-1)
-    tap_weights = tap_weights.expand(shape).reshape(-1)
-    image = tap_weights.new_zeros(n_images * padded_size).index_add_(0, index, tap_weights)
+    corner, taps = _bilinear_taps(xy, weights, height, width)
+    offsets = torch.arange(n_images, device=xy.device).view(*batch_shape, 1) * padded_size
+    corner = (corner.expand(shape) + offsets).reshape(-1)
+    # One scatter per tap: stacking the four taps into one index costs more than the scatters.
+    image = taps[0][1].new_zeros(n_images * padded_size)
+    for step, tap in taps:
+        image = image.index_add_(0, corner + step, tap.expand(shape).reshape(-1))
     image = image.view(*batch_shape, height + 4, width + 4)[..., 2 : height + 2, 2 : width + 2]
     return gaussian_blur(image, sigma, truncate)
 
@@ -251,9 +257,11 @@ class ImageOfWarpedEvents(nn.Module):
         return f"sensor_size={self.sensor_size}, sigma={self.sigma}, truncate={self.truncate}"
 
 
-def _bilinear_taps(xy: Tensor, weights: Tensor | None, height: int, width: int) -> tuple[Tensor, Tensor]:
-    """Indices into an image padded by 2 pixels on each side, and the weights, of the four bilinear
-    taps of each position, :math:`(..., N, 4)`.
+def _bilinear_taps(
+    xy: Tensor, weights: Tensor | None, height: int, width: int
+) -> tuple[Tensor, list[tuple[int, Tensor]]]:
+    """Index of the top-left tap of each position, :math:`(..., N)`, into an image padded by 2 pixels on
+    each side, and the four taps as (index offset, weights :math:`(..., N)`).
 
     Corners are clamped into the padding, so the taps of positions outside the image land in the
     border, which is cropped away: no per-tap masks are needed.
@@ -264,10 +272,9 @@ def _bilinear_taps(xy: Tensor, weights: Tensor | None, height: int, width: int) 
     row = corner[..., 1].clamp(-2, height).long() + 2
     top, bottom = (1 - fy, fy) if weights is None else ((1 - fy) * weights, fy * weights)
     left = 1 - fx
-    tap_weights = torch.stack([top * left, top * fx, bottom * left, bottom * fx], -1)
     stride = width + 4
-    steps = torch.tensor([0, 1, stride, stride + 1], device=xy.device)
-    return (row * stride + col)[..., None] + steps, tap_weights
+    taps = [(0, top * left), (1, top * fx), (stride, bottom * left), (stride + 1, bottom * fx)]
+    return row * stride + col, taps
 
 
 def _check_points(xy: Tensor, name: str) -> None:

@@ -14,7 +14,7 @@ block-coordinate descent (EMSGC ``applySegmentation_GMM``), for at most ``n_iter
 
 1. data costs of every event under every current model;
 2. labelling by α-expansion (``n_iter_labeling`` cycles), starting from the current labels (first round:
-   each event's cheapest model);
+   each event's, or site's, cheapest model);
 3. empty models are dropped and the rest renumbered by size, largest first: the pool only shrinks;
 4. stop when one cluster remains, when at most a fraction ``label_tol`` of the labels changed, or when
    the energy equals the previous round's;
@@ -32,16 +32,31 @@ Deviations from EMSGC, each measured on the synthetic scenes of :func:`~evseg_to
   variance objective of a few thousand events has the same maximum, and the refit's cost is
   proportional to the events it warps;
 * the loop stops once at most ``label_tol`` of the labels changed (EMSGC: none), which saves the
-  last rounds that only flip a few boundary events.
+  last rounds that only flip a few boundary events;
+* the graph cut labels *sites*, not events (``site_time_slices``, see
+  :func:`~evseg_torch.level_two.graph.site_graph`): the events of one pixel within one time slice of
+  the window share a label, their data costs summed and their edges merged, so the energy is EMSGC's
+  restricted to such labellings. With one slice the cut has 12–15k nodes and ~40k edges instead of
+  ~30k and ~155k and α-expansion is 4–7 times faster; on the benchmark windows one labelling's energy
+  rises by 0.0–0.3%, and on the 10 scenes of the slow quality test accuracy stays within ±0.01 and the
+  worst object's IoU within ±0.03 on 9 of 10 scenes (the tenth, seed 0, swings between 0.71 and 0.88
+  accuracy under any small change of the settings, on events and on sites alike);
+* only the first refit runs ``max_iter`` optimiser iterations; the later ones start from the previous
+  refit and run ``warm_max_iter``: after the first refit the models move by less than 0.5 px of
+  displacement per round, and 3 iterations take them there (about 40% of a 10-iteration refit).
 
 Energies. Each labelling never raises the energy *for the models it was given* (α-expansion accepts only
 improving moves, from the current labels). A refit changes the data term, so energies of different rounds
 measure different functions and need not decrease; ``energy_history`` records the energy right after each
-labelling.
+labelling. On sites, given initial labels are first made constant per site (each site takes its events'
+most frequent label), which can raise the energy of labels that differ within a site; the labels this
+segmenter returns are constant per site already, for the same ``site_time_slices``.
 
 Devices. Events and parameters may live on any device; the data term, refits and images run there. The
 graph and α-expansion run on the CPU (NumPy and PyMaxflow), on copies of the event coordinates and of the
-:math:`(N, K)` cost matrix. The graph depends on the events only and is built once per window.
+:math:`(S, K)` cost matrix of the sites. The graph depends on the events only: it is built, and its
+cut-graph node numbering chosen (:func:`~evseg_torch.graphcut.alpha_expansion.potts_graph`), once per
+window.
 """
 
 from __future__ import annotations
@@ -56,10 +71,10 @@ from torch import Tensor, nn
 
 from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
 from evseg_torch.events import EventBatch
-from evseg_torch.graphcut.alpha_expansion import alpha_expansion
+from evseg_torch.graphcut.alpha_expansion import alpha_expansion, potts_graph
 from evseg_torch.level_two.contrast import ContrastMaximization, contrast_loss
 from evseg_torch.level_two.data_term import NORMALIZATIONS, data_cost
-from evseg_torch.level_two.graph import event_graph
+from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.iwe import warped_iwe
 from evseg_torch.motion import MotionModel, make_motion_model
 
@@ -118,7 +133,9 @@ class GraphCutContrastSegmenter(nn.Module):
         sigma: Gaussian blur of the IWEs in the data term and the refits, pixels (EMSGC: 1).
         objective: contrast objective of the refits (see :mod:`~evseg_torch.level_two.contrast`).
         optimizer: ``lbfgs`` or ``adam`` for the refits.
-        max_iter: optimiser iterations per refit.
+        max_iter: optimiser iterations of the first refit, which starts from the initial pool.
+        warm_max_iter: optimiser iterations of each later refit, which starts from the previous refit's
+            models; ``None`` for ``max_iter``.
         lr: learning rate (Adam) or initial step (L-BFGS) of the refits, in pixels of displacement;
             ``None`` for the refit's default.
         temporal_edges: also join consecutive events at the same pixel in the graph (EMSGC: no).
@@ -126,6 +143,9 @@ class GraphCutContrastSegmenter(nn.Module):
             :func:`~evseg_torch.level_two.data_term.data_cost`.
         refit_max_events: most events per cluster a refit sees (an even subsample); ``None`` for all.
         label_tol: stop once at most this fraction of the events changed label in a round (EMSGC: 0).
+        site_time_slices: label sites, the events of one pixel within one of this many slices of the
+            window (see :func:`~evseg_torch.level_two.graph.site_graph`); ``None`` labels every event
+            on its own (EMSGC).
 
     Shape:
         - Input: ``events`` with N events (or a list of windows), ``init_params`` :math:`(K, P)`,
@@ -151,16 +171,18 @@ class GraphCutContrastSegmenter(nn.Module):
         lambda_smooth: float = 30.0,
         lambda_label: float = 8000.0,
         n_iter_segmentation: int = 5,
-        n_iter_labeling: int = 2,
+        n_iter_labeling: int = 1,
         sigma: float = 1.0,
         objective: str = "variance",
         optimizer: str = "lbfgs",
-        max_iter: int = 10,
+        max_iter: int = 6,
+        warm_max_iter: int | None = 3,
         lr: float | None = None,
         temporal_edges: bool = False,
         data_normalization: str = "relative",
         refit_max_events: int | None = 4000,
         label_tol: float = 0.002,
+        site_time_slices: int | None = 1,
     ) -> None:
         super().__init__()
         self.sensor_size = tuple(int(v) for v in sensor_size)
@@ -188,6 +210,15 @@ class GraphCutContrastSegmenter(nn.Module):
             raise ConfigError(f"refit_max_events must be a positive integer or None, got {refit_max_events}")
         if not 0 <= label_tol < 1:
             raise ConfigError(f"label_tol must lie in [0, 1), got {label_tol}")
+        if site_time_slices is not None and (
+            isinstance(site_time_slices, bool)
+            or int(site_time_slices) != site_time_slices
+            or site_time_slices < 1
+        ):
+            raise ConfigError(f"site_time_slices must be a positive integer or None, got {site_time_slices}")
+        self.site_time_slices = None if site_time_slices is None else int(site_time_slices)
+        if warm_max_iter is not None and (int(warm_max_iter) != warm_max_iter or warm_max_iter < 1):
+            raise ConfigError(f"warm_max_iter must be a positive integer or None, got {warm_max_iter}")
         self.data_normalization = data_normalization
         self.refit_max_events = None if refit_max_events is None else int(refit_max_events)
         self.label_tol = float(label_tol)
@@ -199,15 +230,10 @@ class GraphCutContrastSegmenter(nn.Module):
         self.sigma = float(sigma)
         self.objective = objective
         self.temporal_edges = bool(temporal_edges)
-        self.refit = ContrastMaximization(
-            self.model,
-            self.sensor_size,
-            objective=objective,
-            optimizer=optimizer,
-            max_iter=max_iter,
-            lr=lr,
-            sigma=sigma,
-        )
+        warm_max_iter = max_iter if warm_max_iter is None else warm_max_iter
+        refit = {"objective": objective, "optimizer": optimizer, "lr": lr, "sigma": sigma}
+        self.refit = ContrastMaximization(self.model, self.sensor_size, max_iter=max_iter, **refit)
+        self.warm_refit = ContrastMaximization(self.model, self.sensor_size, max_iter=warm_max_iter, **refit)
 
     def extra_repr(self) -> str:
         return (
@@ -216,7 +242,8 @@ class GraphCutContrastSegmenter(nn.Module):
             f"n_iter_segmentation={self.n_iter_segmentation}, n_iter_labeling={self.n_iter_labeling}, "
             f"sigma={self.sigma}, temporal_edges={self.temporal_edges}, "
             f"data_normalization={self.data_normalization!r}, refit_max_events={self.refit_max_events}, "
-            f"label_tol={self.label_tol}"
+            f"label_tol={self.label_tol}, site_time_slices={self.site_time_slices}, "
+            f"max_iter={self.refit.max_iter}, warm_max_iter={self.warm_refit.max_iter}"
         )
 
     def forward(
@@ -301,7 +328,23 @@ class GraphCutContrastSegmenter(nn.Module):
             timings[name] += 1e3 * (now - clock)
             clock = now
 
-        edges, weights = event_graph(events, sensor_size=self.sensor_size, temporal_edges=self.temporal_edges)
+        if self.site_time_slices is None:
+            sites = None
+            edges, weights = event_graph(
+                events, sensor_size=self.sensor_size, temporal_edges=self.temporal_edges
+            )
+        else:
+            sites, edges, weights = site_graph(
+                events,
+                sensor_size=self.sensor_size,
+                time_slices=self.site_time_slices,
+                temporal_edges=self.temporal_edges,
+            )
+        n_sites = len(events) if sites is None else int(sites.max()) + 1
+        # Sites are numbered in row-major pixel order, already local; events are in time order.
+        graph = potts_graph(edges, weights, n_nodes=n_sites, reorder=sites is None)
+        sites_t = None if sites is None else torch.as_tensor(sites, device=events.xy.device)
+        node_labels = labels if labels is None or sites is None else _site_majority(labels, sites, n_sites)
         lap("graph")
         history: list[float] = []
         for _ in range(self.n_iter_segmentation):
@@ -309,18 +352,21 @@ class GraphCutContrastSegmenter(nn.Module):
                 cost = self.lambda_data * data_cost(
                     self.model, events, params, self.sensor_size, self.sigma, self.data_normalization
                 )
+                if sites_t is not None:
+                    cost = cost.new_zeros(n_sites, cost.shape[1]).index_add_(0, sites_t, cost)
             cost = cost.cpu().numpy().astype(np.float64)
             lap("data_term")
             result = alpha_expansion(
                 cost,
-                edges,
-                weights,
+                graph,
                 smoothness=self.lambda_smooth,
                 label_cost=self.lambda_label,
-                init_labels=labels,
+                init_labels=node_labels,
                 max_cycles=self.n_iter_labeling,
             )
-            new_labels, keep = _renumber_by_size(result.labels, params.shape[0])
+            event_labels = result.labels if sites is None else result.labels[sites]
+            mapping, keep = _renumber_by_size(event_labels, params.shape[0])
+            node_labels, new_labels = mapping[result.labels], mapping[event_labels]
             params = params[torch.as_tensor(keep, device=params.device)]
             converged = (
                 len(keep) == 1
@@ -336,8 +382,9 @@ class GraphCutContrastSegmenter(nn.Module):
             members = self._one_hot(labels_t, params)
             if self.refit_max_events is not None:
                 members = _subsample(members, self.refit_max_events)
+            refit = self.refit if len(history) == 1 else self.warm_refit
             with torch.enable_grad():
-                params = self.refit(events, params, members).detach()
+                params = refit(events, params, members).detach()
             lap("refit")
         labels_t = torch.as_tensor(labels, device=events.xy.device)
         with torch.no_grad():
@@ -378,16 +425,23 @@ class GraphCutContrastSegmenter(nn.Module):
 
 
 def _renumber_by_size(labels: np.ndarray, n_labels: int) -> tuple[np.ndarray, np.ndarray]:
-    """Drop empty labels and renumber the rest by decreasing size (ties by index).
+    """Renumbering that drops empty labels and orders the rest by decreasing size (ties by index).
 
-    Returns the new labels and, for each new label, its old index.
+    Returns the new index of every old label (-1 if dropped) and, for each new label, its old index.
     """
     counts = np.bincount(labels, minlength=n_labels)
     order = np.argsort(-counts, kind="stable")
     keep = order[counts[order] > 0]
-    mapping = np.empty(n_labels, dtype=np.int64)
+    mapping = np.full(n_labels, -1, dtype=np.int64)
     mapping[keep] = np.arange(keep.shape[0])
-    return mapping[labels], keep
+    return mapping, keep
+
+
+def _site_majority(labels: np.ndarray, sites: np.ndarray, n_sites: int) -> np.ndarray:
+    """The most frequent label of each site's events (ties to the lower label)."""
+    n_labels = int(labels.max()) + 1
+    votes = np.bincount(sites * n_labels + labels, minlength=n_sites * n_labels)
+    return votes.reshape(n_sites, n_labels).argmax(axis=1)
 
 
 def _changed(old: np.ndarray, new: np.ndarray, keep: np.ndarray) -> float:

@@ -6,7 +6,7 @@ import pytest
 
 from evseg_torch.errors import EvsegError, ShapeError
 from evseg_torch.graphcut import ExpansionResult, GraphCutError, alpha_expansion, labeling_energy
-from evseg_torch.graphcut.alpha_expansion import _expand, _layout, _prepare
+from evseg_torch.graphcut.alpha_expansion import _expand, _prepare, potts_graph
 
 # The package re-exports the function under the module's name, so fetch the module itself.
 alpha_expansion_module = importlib.import_module("evseg_torch.graphcut.alpha_expansion")
@@ -101,7 +101,6 @@ class TestExpansionMove:
         outlier = (1.5 - 3.0 * (seed % 4 == 1), 2.0) if seed % 2 else (None, 0.0)
         args = (unary, edges, weights, 1.3, label_cost, *outlier)
         problem = _prepare(*args)
-        layout = _layout(problem)
         start = rng.integers(0, problem.n_labels, size=n_nodes)
         for alpha, unused in itertools.product(range(problem.n_labels), [False, True]):
             # With α unused, its label cost is paid only if the move is taken.
@@ -111,7 +110,7 @@ class TestExpansionMove:
             moves = np.tile(labels, (len(masks), 1))
             moves[:, movable] = np.where(masks, alpha, labels[movable])
             best = _all_energies(moves, *args).min()
-            candidate = _expand(problem, layout, labels, alpha)
+            candidate = _expand(problem, labels, alpha)
             assert (candidate[candidate != labels] == alpha).all()
             kept = min(_all_energies(candidate[None], *args)[0], _all_energies(labels[None], *args)[0])
             assert kept == pytest.approx(best, abs=1e-9)
@@ -355,3 +354,32 @@ class TestValidation:
             labeling_energy([0, 5, 1], self.UNARY, self.EDGES)
         with pytest.raises(ShapeError, match=r"labels must have shape \(3,\)"):
             labeling_energy([[0, 1, 1]], self.UNARY, self.EDGES)
+
+
+class TestPottsGraph:
+    def test_reused_graph_matches_edge_arrays(self):
+        rng = np.random.default_rng(3)
+        unary, edges, weights = _random_problem(rng, 40, 3, 120)
+        graph = potts_graph(edges, weights, n_nodes=40)
+        assert graph.n_nodes == 40 and graph.n_edges <= len(edges)
+        for smoothness in (0.0, 0.7, 2.0):
+            energy = {"smoothness": smoothness, "label_cost": 1.5}
+            direct = alpha_expansion(unary, edges, weights, **energy)
+            for reused in (
+                alpha_expansion(unary, graph, **energy),
+                alpha_expansion(unary, potts_graph(edges, weights, n_nodes=40, reorder=False), **energy),
+            ):
+                np.testing.assert_array_equal(reused.labels, direct.labels)
+                assert reused.energy == pytest.approx(direct.energy)
+            assert labeling_energy(direct.labels, unary, graph, **energy) == pytest.approx(direct.energy)
+
+    def test_rejects_mismatches(self):
+        graph = potts_graph(np.array([[0, 1]]), n_nodes=2)
+        with pytest.raises(ShapeError, match="2 nodes"):
+            alpha_expansion(np.zeros((3, 2)), graph)
+        with pytest.raises(GraphCutError, match="edge_weights must be None"):
+            alpha_expansion(np.zeros((2, 2)), graph, np.ones(1))
+        with pytest.raises(GraphCutError, match="n_nodes"):
+            potts_graph(np.array([[0, 1]]), n_nodes=-1)
+        with pytest.raises(GraphCutError, match="index nodes"):
+            potts_graph(np.array([[0, 5]]), n_nodes=2)

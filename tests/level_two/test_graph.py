@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from evseg_torch.errors import ShapeError
+from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EVENT_DTYPE, EventBatch
-from evseg_torch.level_two.graph import event_graph, pixel_adjacency
+from evseg_torch.level_two.graph import event_graph, pixel_adjacency, site_graph
 
 
 def _random_events(count, size=(40, 50), seed=0):
@@ -153,3 +153,43 @@ class TestEventGraph:
             event_graph(np.array([[10, 0], [0, 0]]), np.zeros(2), (5, 5))
         with pytest.raises(ShapeError, match="to match"):
             event_graph(np.zeros((3, 2), dtype=int), np.zeros(4))
+
+
+def _merged(sites, edges, weights):
+    """Event edges summed per site pair, within-site edges dropped, sorted by pair."""
+    merged = {}
+    for (a, b), w in zip(sites[edges].tolist(), weights.tolist(), strict=True):
+        if a != b:
+            key = (min(a, b), max(a, b))
+            merged[key] = merged.get(key, 0.0) + w
+    keys = sorted(merged)
+    return np.array(keys, dtype=np.int64).reshape(-1, 2), np.array([merged[k] for k in keys])
+
+
+class TestSiteGraph:
+    @pytest.mark.parametrize(("time_slices", "temporal_edges"), itertools.product([1, 2, 5], [False, True]))
+    def test_merges_the_event_graph(self, time_slices, temporal_edges):
+        xy, t = _random_events(3000, size=(20, 25), seed=time_slices)
+        sites, edges, weights = site_graph(xy, t, time_slices=time_slices, temporal_edges=temporal_edges)
+        # A site is one pixel within one time slice.
+        slot = np.minimum(((t - t.min()) / (t.max() - t.min()) * time_slices).astype(int), time_slices - 1)
+        key = (xy[:, 1] * 25 + xy[:, 0]) * time_slices + slot
+        assert sites.max() + 1 == len(np.unique(key))
+        assert all(len(np.unique(key[sites == s])) == 1 for s in range(0, sites.max() + 1, 7))
+        expected = _merged(sites, *event_graph(xy, t, temporal_edges=temporal_edges))
+        order = np.lexsort((edges[:, 1], edges[:, 0]))
+        np.testing.assert_array_equal(edges[order], expected[0])
+        np.testing.assert_allclose(weights[order], expected[1])
+        assert (edges[:, 0] < edges[:, 1]).all() and (weights > 0).all()
+
+    def test_small_inputs_and_exceptions(self):
+        sites, edges, weights = site_graph(np.array([[3, 4]]), np.array([0.0]))
+        assert sites.tolist() == [0] and edges.shape == (0, 2) and weights.shape == (0,)
+        sites, _, _ = site_graph(np.array([[3, 4], [3, 4]]), np.array([0.0, 0.0]), time_slices=3)
+        assert sites.tolist() == [0, 0]  # no time span: one slice
+        sites, edges, weights = site_graph(np.array([[3, 4]] * 4), np.arange(4.0), time_slices=2)
+        assert sites.tolist() == [0, 0, 1, 1] and edges.shape == (0, 2) and weights.dtype == np.float64
+        with pytest.raises(ConfigError, match="time_slices"):
+            site_graph(np.array([[3, 4]]), np.array([0.0]), time_slices=0)
+        with pytest.raises(ShapeError, match="integer pixels"):
+            site_graph(np.array([[3.5, 4.0]]), np.array([0.0]))
