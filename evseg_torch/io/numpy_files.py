@@ -50,10 +50,29 @@ def read_npy(path: Path) -> np.ndarray:
 
 
 def chunks_npy(path: Path, chunk_size: int) -> Iterator[np.ndarray]:
-    """Consecutive memory-mapped slices of at most ``chunk_size`` events."""
+    """Consecutive slices of at most ``chunk_size`` events, each read from the file on its own.
+
+    Plain reads rather than slices of a memory map: the pages of a map stay resident once touched, so
+    a long recording's resident memory would grow with its length.
+    """
     data = _open_npy(path)
-    for begin in range(0, len(data), chunk_size):
-        yield data[begin : begin + chunk_size]
+    if not data.flags.c_contiguous:
+        for begin in range(0, len(data), chunk_size):
+            yield np.array(data[begin : begin + chunk_size])
+        return
+    n_rows, row_shape, dtype, offset = len(data), data.shape[1:], data.dtype, data.offset
+    del data
+    row_items = int(np.prod(row_shape, dtype=np.int64))
+    with open(path, "rb") as source:
+        for begin in range(0, n_rows, chunk_size):
+            rows = min(chunk_size, n_rows - begin)
+            source.seek(offset + begin * row_items * dtype.itemsize)
+            chunk = np.fromfile(source, dtype=dtype, count=rows * row_items)
+            if chunk.size != rows * row_items:
+                raise ReaderError(
+                    f"the file ends after {begin + chunk.size // max(row_items, 1)} of {n_rows} rows"
+                )
+            yield chunk.reshape(rows, *row_shape)
 
 
 def sensor_size_npy(path: Path) -> None:
