@@ -27,7 +27,6 @@ import numpy as np
 import torch
 
 from evseg_torch.events import to_torch
-from evseg_torch.level_two.data_term import data_cost
 from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.synthetic import make_scene
@@ -99,7 +98,7 @@ def main():
             site_only.append(1e3 * (time.perf_counter() - start))
             start = time.perf_counter()
             with torch.no_grad():
-                data_cost(model, events, pool)
+                segmenter.data_term(events, pool)
             cost_only.append(1e3 * (time.perf_counter() - start))
         print(
             f"  final models {result.params.shape[0]}, energies {[round(e) for e in result.energy_history]}"
@@ -111,7 +110,7 @@ def main():
     print(f"  {'total':<10} {np.median(totals):8.1f}")
     print(
         f"one event_graph call: {np.median(graph_only):.1f} ms; one site_graph call: "
-        f"{np.median(site_only):.1f} ms; one data_cost call (K={pool.shape[0]}): "
+        f"{np.median(site_only):.1f} ms; one data-term call (K={pool.shape[0]}): "
         f"{np.median(cost_only):.1f} ms"
     )
 

@@ -113,6 +113,8 @@ class LevelTwoConfig:
         data_normalization: ``relative`` (each event's image value divided by its best over the pool,
             floored at the pool's 90th percentile) or ``global`` (EMSGC: divided by the global maximum).
             Relative separates layers far better on our scenes; see :mod:`evseg_torch.level_two.data_term`.
+        data_polarity: read each event's data cost from the image of its own polarity's warped events
+            (EMSGC: one image of all events).
         refit_max_events: each refit sees an evenly spaced subsample of at most this many events per
             cluster (``None``: all); models fitted on 4000 events are as good and several times faster.
         label_tol: stop the outer iterations once at most this fraction of labels changed (EMSGC: 0).
@@ -133,6 +135,7 @@ class LevelTwoConfig:
     warm_max_iter: int | None = 3
     lr: float = 1.0
     data_normalization: str = "relative"
+    data_polarity: bool = True
     refit_max_events: int | None = 4000
     label_tol: float = 0.002
     site_time_slices: int | None = 1

@@ -128,6 +128,7 @@ class CascadedSegmenter(nn.Module):
             max_iter=two.max_iter,
             lr=two.lr,
             data_normalization=two.data_normalization,
+            data_polarity=two.data_polarity,
             refit_max_events=two.refit_max_events,
             label_tol=two.label_tol,
             warm_max_iter=two.warm_max_iter,

@@ -26,7 +26,8 @@ Deviations from EMSGC, each measured on the synthetic scenes of :func:`~evseg_to
 
 * the refitted models feed the next round's data term (the EMSGC release keeps reading the initial
   pool): this is the block-coordinate descent the papers describe;
-* the data term's ``"relative"`` normalisation by default (see :mod:`~evseg_torch.level_two.data_term`);
+* the data term's ``"relative"`` normalisation, per-polarity IWEs and an automatic margin around the
+  IWEs by default (see :mod:`~evseg_torch.level_two.data_term`);
 * the refits see at most ``refit_max_events`` events per cluster, every s-th of the cluster in time
   order (a deterministic, evenly spread subsample): the models come from level one already close, the
   variance objective of a few thousand events has the same maximum, and the refit's cost is
@@ -73,7 +74,7 @@ from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.graphcut.alpha_expansion import alpha_expansion, potts_graph
 from evseg_torch.level_two.contrast import ContrastMaximization, contrast_loss
-from evseg_torch.level_two.data_term import NORMALIZATIONS, data_cost
+from evseg_torch.level_two.data_term import NORMALIZATIONS, DataCost
 from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.iwe import warped_iwe
 from evseg_torch.motion import MotionModel, make_motion_model
@@ -141,6 +142,7 @@ class GraphCutContrastSegmenter(nn.Module):
         temporal_edges: also join consecutive events at the same pixel in the graph (EMSGC: no).
         data_normalization: ``"relative"`` or ``"global"`` (EMSGC), see
             :func:`~evseg_torch.level_two.data_term.data_cost`.
+        data_polarity: read each event's data cost from the IWE of its own polarity (EMSGC: no).
         refit_max_events: most events per cluster a refit sees (an even subsample); ``None`` for all.
         label_tol: stop once at most this fraction of the events changed label in a round (EMSGC: 0).
         site_time_slices: label sites, the events of one pixel within one of this many slices of the
@@ -180,6 +182,7 @@ class GraphCutContrastSegmenter(nn.Module):
         lr: float | None = None,
         temporal_edges: bool = False,
         data_normalization: str = "relative",
+        data_polarity: bool = True,
         refit_max_events: int | None = 4000,
         label_tol: float = 0.002,
         site_time_slices: int | None = 1,
@@ -219,7 +222,6 @@ class GraphCutContrastSegmenter(nn.Module):
         self.site_time_slices = None if site_time_slices is None else int(site_time_slices)
         if warm_max_iter is not None and (int(warm_max_iter) != warm_max_iter or warm_max_iter < 1):
             raise ConfigError(f"warm_max_iter must be a positive integer or None, got {warm_max_iter}")
-        self.data_normalization = data_normalization
         self.refit_max_events = None if refit_max_events is None else int(refit_max_events)
         self.label_tol = float(label_tol)
         self.lambda_data = float(lambda_data)
@@ -228,6 +230,9 @@ class GraphCutContrastSegmenter(nn.Module):
         self.n_iter_segmentation = int(n_iter_segmentation)
         self.n_iter_labeling = int(n_iter_labeling)
         self.sigma = float(sigma)
+        self.data_term = DataCost(
+            self.model, self.sensor_size, self.sigma, data_normalization, polarity=data_polarity, margin=None
+        )
         self.objective = objective
         self.temporal_edges = bool(temporal_edges)
         warm_max_iter = max_iter if warm_max_iter is None else warm_max_iter
@@ -241,7 +246,7 @@ class GraphCutContrastSegmenter(nn.Module):
             f"lambda_smooth={self.lambda_smooth}, lambda_label={self.lambda_label}, "
             f"n_iter_segmentation={self.n_iter_segmentation}, n_iter_labeling={self.n_iter_labeling}, "
             f"sigma={self.sigma}, temporal_edges={self.temporal_edges}, "
-            f"data_normalization={self.data_normalization!r}, refit_max_events={self.refit_max_events}, "
+            f"refit_max_events={self.refit_max_events}, "
             f"label_tol={self.label_tol}, site_time_slices={self.site_time_slices}, "
             f"max_iter={self.refit.max_iter}, warm_max_iter={self.warm_refit.max_iter}"
         )
@@ -349,9 +354,7 @@ class GraphCutContrastSegmenter(nn.Module):
         history: list[float] = []
         for _ in range(self.n_iter_segmentation):
             with torch.no_grad():
-                cost = self.lambda_data * data_cost(
-                    self.model, events, params, self.sensor_size, self.sigma, self.data_normalization
-                )
+                cost = self.lambda_data * self.data_term(events, params)
                 if sites_t is not None:
                     cost = cost.new_zeros(n_sites, cost.shape[1]).index_add_(0, sites_t, cost)
             cost = cost.cpu().numpy().astype(np.float64)

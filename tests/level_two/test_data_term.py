@@ -3,7 +3,7 @@ import torch
 
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.data_term import DataCost, data_cost, sample_bilinear
+from evseg_torch.level_two.data_term import NORMALIZATIONS, DataCost, data_cost, sample_bilinear
 from evseg_torch.level_two.iwe import splat_events, warp_events
 from evseg_torch.motion import Affine4, Translation
 
@@ -111,6 +111,46 @@ class TestDataCost:
         cost = data_cost(Translation((8, 8)), events, torch.tensor([[500.0, 0.0]]))  # 5 px to the left
         assert cost[0, 0] == 255.0 and cost[1, 0] < 255.0
 
+    def test_margin_keeps_events_carried_out_of_the_sensor(self):
+        events = EventBatch(
+            torch.tensor([[1.0, 1.0], [20.0, 20.0]]), torch.tensor([0.01, 0.01]), torch.ones(2)
+        )
+        model = Translation((40, 40))
+        left = torch.tensor([[500.0, 0.0]])  # 5 px to the left: the first event lands at x = -4
+        assert data_cost(model, events, left)[0, 0] == 255.0
+        assert data_cost(model, events, left, margin=4)[0, 0] == 0.0
+        # The automatic margin is the overshoot, 4 px, capped at an eighth of the larger side, 5 px.
+        torch.testing.assert_close(
+            data_cost(model, events, left, margin=None), data_cost(model, events, left, margin=4)
+        )
+        assert data_cost(model, events, left * 10, margin=None)[0, 0] == 255.0
+        for margin in (-1, 1.5, True):
+            with pytest.raises(ConfigError, match="margin"):
+                data_cost(model, events, left, margin=margin)
+
+    def test_polarity(self):
+        model = Translation((32, 40))
+        pool = torch.tensor([[0.0, 0.0], [300.0, -100.0]])
+        line = _edge_events()
+        for normalization in NORMALIZATIONS:  # events of one polarity make one image, as without
+            torch.testing.assert_close(
+                data_cost(model, line, pool, normalization=normalization, polarity=True),
+                data_cost(model, line, pool, normalization=normalization),
+            )
+        # A still edge of positive events and a few negative events on it: an event of the other sign
+        # lands on a bright pixel of the image of all events but on a dark one of its own polarity's.
+        rows = torch.arange(4.0, 28.0)
+        edge = torch.stack([torch.full_like(rows, 10.0), rows], 1).repeat(5, 1)
+        probes = torch.tensor([[10.0, 8.0], [10.0, 16.0], [10.0, 24.0]])
+        events = EventBatch(
+            torch.cat([edge, probes]),
+            torch.linspace(0, 0.02, len(edge) + 3),
+            torch.cat([torch.ones(len(edge)), -torch.ones(3)]),
+        )
+        mixed = data_cost(model, events, pool[:1])
+        split = data_cost(model, events, pool[:1], polarity=True)
+        assert mixed[-3:].max() < 10 and split[-3:].min() > 200
+
     def test_gradcheck(self):
         events = _edge_events(count=30, size=(12, 14), dtype=torch.float64)
         events = EventBatch(events.xy.clamp(0, 10), events.t, events.p)
@@ -130,6 +170,12 @@ class TestDataCost:
             DataCost(model, normalization="relative")(events, params),
             data_cost(model, events, params, normalization="relative"),
         )
+        module = DataCost(model, normalization="relative", polarity=True, margin=None)
+        torch.testing.assert_close(
+            module(events, params),
+            data_cost(model, events, params, normalization="relative", polarity=True, margin=None),
+        )
+        assert "polarity=True, margin=None" in repr(module)
 
     def test_device(self, device):
         events = _edge_events()

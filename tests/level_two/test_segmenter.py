@@ -5,7 +5,6 @@ import torch
 from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
 from evseg_torch.events import EventBatch, to_torch
 from evseg_torch.graphcut.alpha_expansion import labeling_energy
-from evseg_torch.level_two.data_term import data_cost
 from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter, LevelTwoResult
 from evseg_torch.metrics import labelling_accuracy, per_object_iou
@@ -93,11 +92,7 @@ class TestGraphCutContrastSegmenter:
         pool = _pool(flows)
         segmenter = _segmenter(n_iter_segmentation=1)
         result = segmenter(events, pool)
-        cost = (
-            data_cost(segmenter.model, events, pool, normalization=segmenter.data_normalization)
-            .double()
-            .numpy()
-        )
+        cost = segmenter.data_term(events, pool).double().numpy()
         edges, weights = event_graph(events)
         energy = {"smoothness": segmenter.lambda_smooth, "label_cost": segmenter.lambda_label}
         initial = labeling_energy(cost.argmin(1), cost, edges, weights, **energy)
@@ -111,7 +106,7 @@ class TestGraphCutContrastSegmenter:
         # those labels under the same models' costs (which depend on the whole pool).
         survivors = pool[mapping]
         again = segmenter(events, survivors, init_labels=result.labels)
-        cost = data_cost(segmenter.model, events, survivors, normalization=segmenter.data_normalization)
+        cost = segmenter.data_term(events, survivors)
         before = labeling_energy(result.labels.numpy(), cost.double().numpy(), edges, weights, **energy)
         assert again.energy_history[0] <= before + 1e-6
 
@@ -247,10 +242,10 @@ class TestGraphCutContrastSegmenter:
 def test_quality_on_synthetic_scenes():
     """Level two alone, from perturbed true models plus two spurious ones, on 10 default affine scenes.
 
-    The issue's bar (accuracy >= 0.9, every object's IoU >= 0.8, spurious models removed, on 8 of 10
-    scenes) is met on 5 of 10 (seeds 1, 4, 6, 7, 9). The energy itself is the limit: with the true
-    models and no refit, one labelling meets it on 5 of 10 scenes (1 of 10 with EMSGC's global
-    normalisation). What is asserted is what the method reaches, with a small margin.
+    The issue's bar: accuracy >= 0.9 and every object's IoU >= 0.8 on 8 of 10 scenes, spurious models
+    removed. Met on seeds 0-9 with per-polarity IWEs and the IWE margin (5 of 10 without); seeds 5 and 8
+    fail on straight object outlines that another layer's motion explains as well (the aperture problem)
+    and on a small object. On seeds 10-19 it is met on 2 of 10 (1 without), mean accuracy 0.92.
     """
     accuracies, worst_ious, extra = [], [], []
     for seed in range(10):
@@ -267,8 +262,7 @@ def test_quality_on_synthetic_scenes():
         accuracies.append(labelling_accuracy(predicted, scene.labels))
         worst_ious.append(min(per_object_iou(predicted, scene.labels).values()))
         extra.append(result.params.shape[0] - (n_objects + 1))
-    assert sum(count <= 0 for count in extra) >= 9, extra  # spurious models removed
-    assert sum(accuracy >= 0.9 for accuracy in accuracies) >= 8, accuracies
-    assert min(accuracies) >= 0.83, accuracies
-    assert sum(iou >= 0.8 for iou in worst_ious) >= 6, worst_ious
-    assert np.median(worst_ious) >= 0.8, worst_ious
+    assert all(count <= 0 for count in extra), extra  # spurious models removed
+    passed = [accuracy >= 0.9 and iou >= 0.8 for accuracy, iou in zip(accuracies, worst_ious, strict=True)]
+    assert sum(passed) >= 8, (accuracies, worst_ious)
+    assert min(accuracies) >= 0.85, accuracies
