@@ -9,12 +9,15 @@ previous window's models are reused. This script times :func:`extract_correspond
 * ``eed``: consecutive windows of EED's ``occlusions`` recording (``--data`` points at it);
 * ``tracks``: no events, 100-300 drawn tracks of 2-4 affine motions with 20-30% outliers (Prog-X only).
 
-BLAS is pinned to one thread before NumPy loads, as in the paper's single-thread timing; small matrix
-products only lose to threading overhead.
+BLAS (hence also torch) is pinned to one thread before NumPy loads, as in the paper's single-thread
+timing; small matrix products only lose to threading overhead. OpenCV's Lucas-Kanade, about three
+quarters of the features' time, keeps OpenCV's own thread count unless ``--opencv-threads`` says
+otherwise; the header line prints it.
 
 Usage::
 
     python benchmarks/bench_level_one.py [--source scenes|eed|tracks] [--windows 24] [--repeats 3]
+        [--opencv-threads N]
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ import os
 
 for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
+# Idle OpenMP workers sleep instead of spinning on the cores that timing needs.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
 import time  # noqa: E402
@@ -30,6 +35,7 @@ from collections.abc import Iterator  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import NamedTuple  # noqa: E402
 
+import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from evseg_torch.level_one.features import extract_correspondences  # noqa: E402
@@ -152,8 +158,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timing repeats per window (best is kept)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--data", type=Path, default=EED_OCCLUSIONS, help="EED occlusions folder")
+    parser.add_argument("--opencv-threads", type=int, default=None, help="OpenCV threads (default: its own)")
     args = parser.parse_args()
     EED_OCCLUSIONS = args.data
+    if args.opencv_threads is not None:
+        cv2.setNumThreads(args.opencv_threads)
 
     model = Affine4(SENSOR_SIZE)
     windows = list(SOURCES[args.source](model, args.windows, np.random.default_rng(args.seed)))
@@ -182,7 +191,10 @@ def main() -> None:
             previous = (window.sequence, cold.params)
         rows.append(row)
 
-    print(f"level one, {len(windows)} {args.source} windows, affine4, 1 BLAS thread, best of {args.repeats}")
+    print(
+        f"level one, {len(windows)} {args.source} windows, affine4, 1 BLAS thread, "
+        f"{cv2.getNumThreads()} OpenCV threads, best of {args.repeats}"
+    )
     print(" tracks motions | cold: found iters    ms | reuse: found iters    ms")
     for row in rows:
         cold_part = f"{row[0]:7d} {row[1]:7d} | {row[2]:11d} {row[3]:5d} {row[4]:5.1f}"

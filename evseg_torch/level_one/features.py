@@ -7,10 +7,10 @@ in the window:
 1. :func:`event_image` accumulates the events of the first and of the last sub-window (by default
    each a third of the window) into count images of the sensor's size, which :func:`to_uint8`
    blurs lightly and scales to 8 bits with clipping.
-2. :func:`detect_corners` smooths an 8-bit image (:func:`kornia.filters.gaussian_blur2d`), scores it
+2. :func:`detect_corners` smooths an 8-bit image (``cv2.GaussianBlur``), scores it
    with :func:`kornia.feature.gftt_response` (the structure tensor's smaller eigenvalue) and keeps
-   local maxima that are at least ``min_distance`` apart and above a relative quality threshold,
-   strongest first, as ``cv2.goodFeaturesToTrack`` does.
+   local maxima that are more than ``min_distance`` apart and above a relative quality threshold,
+   strongest first, as ``cv2.goodFeaturesToTrack`` does; both images go through kornia in one batch.
 3. :func:`track_features` runs ``cv2.calcOpticalFlowPyrLK`` forwards and backwards on both 8-bit
    images and keeps tracks that succeed both ways, come back to within ``fb_threshold``
    pixels of their start and end inside the image.
@@ -19,15 +19,17 @@ As in the paper, corners are detected on *both* images: those of the early image
 forwards, those of the late image backwards (skipping late corners that a forward track already
 reaches). Small moving objects carry few corners, and the second image about doubles their tracks.
 
-Each image stands for the mid time of its sub-window, so a track's time gap ``dt`` is the distance
-between the two mid times. :func:`extract_correspondences` chains the three steps for one window.
+Each image stands for the mean timestamp of its events, so a track's time gap ``dt`` is the distance
+between the two mean times. :func:`extract_correspondences` chains the three steps for one window.
 Tracks stay precise while a sub-window smears a corner over a few pixels: with the defaults and a
 30 ms window, up to about 600 px/s; faster motions need a shorter ``sub_window_ms``. The defaults
-(500 corners, 3 px apart, quality 0.001) keep every corner a DAVIS240 window offers (about 350-400 per
-image on synthetic scenes): small objects need every track they have, and the forward-backward check,
-not the corner score, is what rejects the corners of noise.
+(500 corners, more than 2 px apart, quality 0.001) keep every corner a DAVIS240 window offers (about
+300-500 per image on synthetic scenes): small objects need every track they have, and a tight
+forward-backward check (0.25 px), not the corner score, is what rejects the corners of noise. On
+synthetic scenes of 40k events in 30 ms with motions up to 600 px/s, about 92 % of the kept tracks
+end within 1.5 px of where their layer's true motion takes them.
 
-torch is used only for kornia's smoothing and corner response; everything else is NumPy and OpenCV.
+torch is used only for kornia's corner response; everything else is NumPy and OpenCV.
 """
 
 from __future__ import annotations
@@ -138,7 +140,7 @@ def detect_corners(
     image,
     *,
     max_corners: int = 500,
-    min_distance: int = 3,
+    min_distance: int = 2,
     quality_level: float = 0.001,
     sigma: float = 1.0,
 ) -> np.ndarray:
@@ -170,6 +172,13 @@ def detect_corners(
         ConfigError: a parameter is out of range.
     """
     image = _check_image(image, "image")
+    return _detect_corners(image[None], max_corners, min_distance, quality_level, sigma)[0]
+
+
+def _detect_corners(
+    images: np.ndarray, max_corners: int, min_distance: int, quality_level: float, sigma: float
+) -> list[np.ndarray]:
+    """:func:`detect_corners` of a stack of images :math:`(B, H, W)`, scored in one batched kornia call."""
     if int(max_corners) < 1:
         raise ConfigError(f"max_corners must be at least 1, got {max_corners}")
     if int(min_distance) < 1:
@@ -178,38 +187,56 @@ def detect_corners(
         raise ConfigError(f"quality_level must lie in [0, 1), got {quality_level}")
     if not sigma >= 0.0:
         raise ConfigError(f"sigma must be non-negative, got {sigma}")
-    height, width = image.shape
-    with torch.inference_mode():
-        tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None, None]
-        if sigma > 0.0:
-            size = 2 * math.ceil(3.0 * sigma) + 1
-            tensor = kornia.filters.gaussian_blur2d(tensor, (size, size), (sigma, sigma))
-        score = kornia.feature.gftt_response(tensor)[0, 0].numpy().astype(np.float64)
-    best = float(score.max())
-    if not best > 0.0:
-        return np.zeros((0, 2), dtype=np.float64)
+    _, height, width = images.shape
+    images = np.asarray(images, dtype=np.float32)
+    if sigma > 0.0:
+        # The same kernel and reflecting border as kornia.filters.gaussian_blur2d, at a fraction of its cost.
+        size = 2 * math.ceil(3.0 * sigma) + 1
+        images = np.stack(
+            [
+                cv2.GaussianBlur(image, (size, size), sigma, borderType=cv2.BORDER_REFLECT_101)
+                for image in images
+            ]
+        )
+    # oneDNN's convolutions cost several times PyTorch's own on single-channel images this small.
+    with (
+        torch.inference_mode(),
+        torch.backends.mkldnn.flags(enabled=False, deterministic=None, allow_tf32=None, fp32_precision=None),
+    ):
+        tensor = torch.from_numpy(np.ascontiguousarray(images))[:, None]
+        scores = kornia.feature.gftt_response(tensor)[:, 0].numpy().astype(np.float64)
     # The ramp adds at most 1e-9 of the best score: below float32 resolution of every score above 2 %
     # of the best, so it orders ties and nothing else, while its steps stay resolvable in float64.
-    score += np.arange(height * width, 0, -1).reshape(height, width) * (best * 1e-9 / (height * width))
+    ramp = np.arange(height * width, 0, -1, dtype=np.float64).reshape(height, width)
+    ramp *= 1e-9 / (height * width)
     side = 2 * int(min_distance) + 1
-    # A grey dilation is the separable running maximum: the max-pool NMS at a fraction of its cost.
-    peaks = score == cv2.dilate(score, np.ones((side, side), np.uint8))
-    peaks &= score > best * max(quality_level, 1e-6)
-    rows, cols = np.nonzero(peaks)
-    order = np.argsort(-score[rows, cols], kind="stable")[: int(max_corners)]
-    return np.column_stack([cols[order], rows[order]]).astype(np.float64)
+    corners = []
+    for score in scores:
+        best = float(score.max())
+        if not best > 0.0:
+            corners.append(np.zeros((0, 2), dtype=np.float64))
+            continue
+        score += ramp * best
+        # A grey dilation is the separable running maximum: the max-pool NMS at a fraction of its cost.
+        peaks = score == cv2.dilate(score, np.ones((side, side), np.uint8))
+        peaks &= score > best * max(quality_level, 1e-6)
+        rows, cols = np.nonzero(peaks)
+        order = np.argsort(-score[rows, cols], kind="stable")[: int(max_corners)]
+        corners.append(np.column_stack([cols[order], rows[order]]).astype(np.float64))
+    return corners
 
 
-def to_uint8(image, *, sigma: float = 0.7, percentile: float = 99.5) -> np.ndarray:
+def to_uint8(image, *, sigma: float = 1.0, percentile: float = 99.5) -> np.ndarray:
     """Smooth a count image and scale it to ``uint8`` for OpenCV's Lucas-Kanade.
 
     A light Gaussian blur (``cv2.GaussianBlur``) turns the sparse, spiky counts into the smooth
-    intensities LK's gradients need; on synthetic scenes, σ = 0.7 px keeps the most tracks within
-    1.5 px of the truth. Counts are then multiplied by ``255 / c``, where ``c`` is the
-    ``percentile`` of the *non-zero* pixels (most pixels of an event image are empty, so a
-    percentile over all of them would often be 0), rounded and clipped. Normalising each image by
-    its own scale keeps LK's brightness constancy when the two sub-windows hold different numbers
-    of events, and the clipping keeps hot pixels and bursts from darkening everything else.
+    intensities LK's gradients need; on synthetic scenes, σ = 1 px gives the most precise tracks
+    (σ = 0.7 about 2 % fewer within 1.5 px of the truth, σ = 1.5 a sixth fewer tracks). Counts are
+    then multiplied by ``255 / c``, where ``c`` is the ``percentile`` of the *non-zero* pixels (most
+    pixels of an event image are empty, so a percentile over all of them would often be 0), rounded
+    and clipped. Normalising each image by its own scale keeps LK's brightness constancy when the
+    two sub-windows hold different numbers of events, and the clipping keeps hot pixels and bursts
+    from darkening everything else.
 
     Args:
         image: non-negative :math:`(H, W)` array.
@@ -236,7 +263,7 @@ def track_features(
     *,
     win_size: tuple[int, int] = (21, 21),
     max_level: int = 3,
-    fb_threshold: float = 0.5,
+    fb_threshold: float = 0.25,
     max_iterations: int = 30,
     epsilon: float = 0.01,
 ) -> Tracks:
@@ -305,22 +332,23 @@ def extract_correspondences(
     sub_window_ms: float | None = None,
     t_ref: int | None = None,
     max_corners: int = 500,
-    min_distance: int = 3,
+    min_distance: int = 2,
     quality_level: float = 0.001,
     sigma: float = 1.0,
     win_size: tuple[int, int] = (21, 21),
     max_level: int = 3,
-    fb_threshold: float = 0.5,
+    fb_threshold: float = 0.25,
     both_images: bool = True,
 ) -> Correspondences:
     """Feature correspondences between the beginning and the end of one window of events.
 
     The window spans the first to the last event. The early image accumulates the events of its
-    first ``sub_window`` fraction, the late image those of its last; each image stands for the mid
-    time of its sub-window, so every track spans ``dt = (1 - sub_window) * duration``. A third
-    (the default) balances two needs: enough events per image for stable corners, and a gap long
-    enough for displacements of a few pixels while each image's own motion blur stays below
-    a third of the window's motion (on EED, shorter or longer sub-windows found fewer balls).
+    first ``sub_window`` fraction, the late image those of its last; each image stands for the mean
+    timestamp of its events (at a constant event rate, its sub-window's middle, so that every track
+    spans ``dt = (1 - sub_window) * duration``). A third (the default) balances two needs: enough
+    events per image for stable corners, and a gap long enough for displacements of a few pixels
+    while each image's own motion blur stays below a third of the window's motion (on EED, shorter
+    or longer sub-windows found fewer balls).
     Tracks from the early image's corners come first in the result, then those of the late image.
 
     Args:
@@ -370,30 +398,37 @@ def extract_correspondences(
     # early image always holds the first event and the late one the last.
     early_end = np.searchsorted(t_us, t_first + length, side="left")
     late_begin = np.searchsorted(t_us, t_last - length, side="right")
+    early = slice(0, max(int(early_end), 1))
+    late = slice(min(int(late_begin), len(events) - 1), None)
     xy = np.column_stack([events["x"], events["y"]])
     # Corners are detected on the 8-bit image that LK tracks: its clipping keeps hot pixels and bursts
     # from raising the relative quality threshold above every genuine corner.
-    image0 = to_uint8(event_image(xy[: max(int(early_end), 1)], (height, width)))
-    image1 = to_uint8(event_image(xy[min(int(late_begin), len(events) - 1) :], (height, width)))
+    image0 = to_uint8(event_image(xy[early], (height, width)))
+    image1 = to_uint8(event_image(xy[late], (height, width)))
+    # Each image stands for the mean time of its events rather than its sub-window's middle: the event
+    # rate is not flat (a scene's first milliseconds, bursts), and an image's edges lie where they
+    # were at its events' mean time.
     origin = t_first if t_ref is None else int(t_ref)
-    t_src = (t_first + 0.5 * length - origin) * 1e-6
-    t_dst = (t_last - 0.5 * length - origin) * 1e-6
-    detect = {
-        "max_corners": max_corners,
-        "min_distance": min_distance,
-        "quality_level": quality_level,
-        "sigma": sigma,
-    }
+    t_src = (float(np.mean(t_us[early])) - origin) * 1e-6
+    t_dst = (float(np.mean(t_us[late])) - origin) * 1e-6
+    corners = _detect_corners(
+        np.stack([image0, image1]) if both_images else image0[None],
+        max_corners,
+        min_distance,
+        quality_level,
+        sigma,
+    )
     track = {"win_size": win_size, "max_level": max_level, "fb_threshold": fb_threshold}
-    forward = track_features(image0, image1, detect_corners(image0, **detect), **track)
+    forward = track_features(image0, image1, corners[0], **track)
     src, dst = forward.src[forward.keep], forward.dst[forward.keep]
     if both_images:
         # Corners of the late image give the tracks of texture that only shows up there and add tracks
         # on small objects; those within min_distance of a forward track's end would duplicate it.
-        late = detect_corners(image1, **detect)
-        if len(dst) and len(late):
-            late = late[cKDTree(dst).query(late, distance_upper_bound=min_distance)[0] > min_distance]
-        backward = track_features(image1, image0, late, **track)
+        late_corners = corners[1]
+        if len(dst) and len(late_corners):
+            gaps = cKDTree(dst).query(late_corners, distance_upper_bound=min_distance)[0]
+            late_corners = late_corners[gaps > min_distance]
+        backward = track_features(image1, image0, late_corners, **track)
         src = np.concatenate([src, backward.dst[backward.keep]])
         dst = np.concatenate([dst, backward.src[backward.keep]])
     return Correspondences(
