@@ -129,6 +129,13 @@ def _parser() -> argparse.ArgumentParser:
         "--window-ms", type=float, help="window length centred on each box (default from the config)"
     )
     eed.add_argument("--json", type=Path, help="also write the results as JSON")
+    eed.add_argument(
+        "--figures",
+        type=Path,
+        metavar="DIR",
+        help="write DIR/<sequence>.png: each window's compensated clusters with the GT box (red) and the "
+        "matched cluster's box (dashed)",
+    )
     eed.set_defaults(run=_evaluate_eed)
     evimo = protocols.add_parser(
         "evimo",
@@ -359,6 +366,7 @@ def _evaluate_eed(args) -> int:
     from evseg_torch.config import load_config
     from evseg_torch.evaluation.eed import PAPER_TABLE_I, detection_rate, evaluate_boxes, load_eed_sequence
     from evseg_torch.pipeline import CascadedSegmenter
+    from evseg_torch.viz import boxes_figure, render_labels, save_figure
 
     config = load_config(args.config or _bundled_config("eed.yaml"))
     window_ms = args.window_ms or config.window.window_ms
@@ -366,6 +374,20 @@ def _evaluate_eed(args) -> int:
     for folder in args.folders:
         sequence = load_eed_sequence(folder)
         segmenter = CascadedSegmenter(sequence.sensor_size, config)
+        panels = []
+
+        def draw(result, segmentation, panels=panels):
+            panels.append(
+                {
+                    "image": render_labels(
+                        segmentation.warped_xy, segmentation.labels, segmentation.sensor_size
+                    ),
+                    "gt_box": result.gt_box,
+                    "predicted_box": result.predicted_box,
+                    "title": f"box {len(panels)}: IoU {result.iou:.2f}",
+                }
+            )
+
         results = evaluate_boxes(
             segmenter,
             sequence.events,
@@ -374,8 +396,13 @@ def _evaluate_eed(args) -> int:
             window_ms=window_ms,
             min_events=config.window.min_events,
             progress=not args.quiet,
+            on_window=draw if args.figures else None,
         )
         rows[sequence.name] = {**detection_rate(results), "paper": PAPER_TABLE_I.get(sequence.name, {})}
+        if panels:
+            args.figures.mkdir(parents=True, exist_ok=True)
+            title = f"EED {sequence.name}: {window_ms:g} ms windows centred on the GT boxes"
+            save_figure(boxes_figure(panels, title), args.figures / f"{sequence.name}.png")
     print(f"EED detection rate (%), IoU > 0.5, windows of {window_ms:g} ms centred on each box")
     print(
         f"{'sequence':<20} {'boxes':>5} {'ours':>7} {'overlap':>7} {'IoU':>5} | "

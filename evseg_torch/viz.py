@@ -134,6 +134,45 @@ def fig1_figure(
     return fig
 
 
+def boxes_figure(panels: list[dict], title: str | None = None, columns: int = 5):
+    """A grid of segmented, compensated windows with a ground-truth and a predicted box on each.
+
+    Args:
+        panels: one dict per window with ``image`` (:math:`(H, W, 3)` uint8, e.g. from
+            :func:`render_labels`), ``gt_box`` and ``predicted_box`` (``[x, y, w, h]``; NaN for none)
+            and ``title``.
+        title: figure title.
+        columns: panels per row.
+
+    Returns:
+        A matplotlib figure: ground truth in red, prediction dashed in black.
+    """
+    if not panels:
+        raise EvsegError("boxes_figure needs at least one panel")
+    plt = _pyplot()
+    from matplotlib.patches import Rectangle
+
+    columns = min(columns, len(panels))
+    rows = -(-len(panels) // columns)
+    fig, axes = plt.subplots(
+        rows, columns, figsize=(3.2 * columns, 2.6 * rows), squeeze=False, constrained_layout=True
+    )
+    for ax in axes.flat:
+        ax.set_axis_off()
+    for ax, panel in zip(axes.flat, panels, strict=False):
+        ax.imshow(panel["image"])
+        for box, style in (
+            (panel["gt_box"], {"ec": "red"}),
+            (panel["predicted_box"], {"ec": "k", "ls": "--"}),
+        ):
+            if np.all(np.isfinite(box)):
+                ax.add_patch(Rectangle(box[:2], box[2], box[3], fill=False, linewidth=1.5, **style))
+        ax.set_title(panel["title"], fontsize=9)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
 def save_figure(fig, path: str | Path, dpi: int = 80) -> Path:
     """Save a figure as PNG and close it."""
     path = Path(path)

@@ -180,3 +180,28 @@ def test_workers_segment_files_in_parallel(tmp_path):
     for path in (first, second):
         labels = np.load(out / path.stem / "labels.npz")["labels"]
         assert labels.shape == (len(load_events(path)),) and labels.max() >= 0
+
+
+def test_evaluate_eed_on_a_real_sequence(real_data, tmp_path, capsys):
+    """The EED protocol end to end on eed_occlusions (13 boxes), with its table, JSON and figure."""
+    out = tmp_path / "eed.json"
+    code = main(
+        [
+            "--quiet",
+            "evaluate",
+            "eed",
+            str(real_data / "eed_occlusions"),
+            "--json",
+            str(out),
+            "--figures",
+            str(tmp_path / "figures"),
+        ]
+    )
+    assert code == 0
+    table = capsys.readouterr().out
+    assert "occlusions" in table and "IROS21" in table
+    row = json.loads(out.read_text())["occlusions"]
+    assert row["boxes"] == row["evaluable"] == 13
+    assert row["paper"]["IROS 2021"] == 100.0
+    assert row["detected"] >= 1 and 0 < row["mean_iou"] < 1
+    assert (tmp_path / "figures" / "occlusions.png").stat().st_size > 10_000

@@ -1,11 +1,13 @@
 import numpy as np
 import pytest
 
+from evseg_torch.errors import EvsegError
 from evseg_torch.level_one.features import Correspondences
 from evseg_torch.pipeline import Segmentation
 from evseg_torch.viz import (
     PALETTE,
     UNLABELLED,
+    boxes_figure,
     count_image,
     fig1_figure,
     label_colors,
@@ -58,3 +60,28 @@ def test_fig1_panels(tmp_path, ground_truth):
     fig = fig1_figure(segmentation, title="t", metrics={"accuracy": 1.0}, ground_truth=ground_truth)
     assert len(fig.axes) == (4 if ground_truth is None else 5)
     assert save_figure(fig, tmp_path / "f.png").stat().st_size > 1000
+
+
+def test_boxes_figure(tmp_path):
+    image = np.full((20, 30, 3), 255, dtype=np.uint8)
+    panels = [
+        {
+            "image": image,
+            "gt_box": np.array([2.0, 3, 5, 4]),
+            "predicted_box": np.array([3.0, 3, 5, 4]),
+            "title": "a",
+        },
+        {
+            "image": image,
+            "gt_box": np.array([2.0, 3, 5, 4]),
+            "predicted_box": np.full(4, np.nan),
+            "title": "b",
+        },
+    ]
+    fig = boxes_figure(panels, title="EED", columns=5)
+    drawn = [ax for ax in fig.axes if ax.images]
+    assert len(drawn) == 2 and [len(ax.patches) for ax in drawn] == [2, 1]  # no box where none matched
+    assert drawn[1].get_title() == "b"
+    assert save_figure(fig, tmp_path / "boxes.png").stat().st_size > 1000
+    with pytest.raises(EvsegError, match="at least one panel"):
+        boxes_figure([])

@@ -20,6 +20,7 @@ Detection rate = detected / evaluable boxes.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -123,6 +124,7 @@ def evaluate_boxes(
     min_events: int = 500,
     min_count: float = 2.0,
     progress: bool = False,
+    on_window: Callable[[BoxResult, object], None] | None = None,
 ) -> list[BoxResult]:
     """Run the protocol on one sequence.
 
@@ -132,6 +134,11 @@ def evaluate_boxes(
         box_times_s: GT box times in seconds, :math:`(M,)`.
         boxes: GT boxes ``[x, y, w, h]``, :math:`(M, 4)`.
         window_ms: length of the window centred on each box time.
+        min_events: windows with fewer events are not evaluable.
+        min_count: a pixel of a cluster's compensated image belongs to its box above this count.
+        progress: show a progress bar.
+        on_window: called with each evaluable box's result and its window's segmentation, e.g. to
+            draw it (``evseg evaluate eed --figures``).
     """
     from tqdm.auto import tqdm
 
@@ -154,18 +161,19 @@ def evaluate_boxes(
         overlap = (
             float(box_intersection(best_box, gt) / (gt[2] * gt[3])) if not np.isnan(best_box[0]) else 0.0
         )
-        results.append(
-            BoxResult(
-                float(t_s),
-                gt,
-                True,
-                len(window),
-                best_box,
-                best_iou,
-                np.nan_to_num(overlap),
-                segmentation.n_clusters,
-            )
+        result = BoxResult(
+            float(t_s),
+            gt,
+            True,
+            len(window),
+            best_box,
+            best_iou,
+            np.nan_to_num(overlap),
+            segmentation.n_clusters,
         )
+        results.append(result)
+        if on_window is not None:
+            on_window(result, segmentation)
     return results
 
 

@@ -101,8 +101,18 @@ class TestEvaluateBoxes:
             return _segmentation(xy, labels)
 
         gt = np.array([[10.0, 10.0, 10.0, 5.0], [0.0, 0.0, 5.0, 5.0]])
-        results = evaluate_boxes(stub, events, np.array([0.01, 0.0195]), gt, window_ms=4, min_events=300)
+        observed = []
+        results = evaluate_boxes(
+            stub,
+            events,
+            np.array([0.01, 0.0195]),
+            gt,
+            window_ms=4,
+            min_events=300,
+            on_window=lambda result, segmentation: observed.append((result, segmentation.n_clusters)),
+        )
         assert seen == [(8000, 11990, 0.01)]
+        assert len(observed) == 1 and observed[0][0] is results[0] and observed[0][1] == 2  # evaluable only
         first, second = results
         assert first.evaluable and first.n_events == 400 and first.iou == 1.0 and first.detected
         assert first.intersection_over_gt == 1.0 and first.n_clusters == 2
