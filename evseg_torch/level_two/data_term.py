@@ -80,12 +80,14 @@ RELATIVE_FLOOR_QUANTILE = 0.9
 """Quantile of all in-image IWE values that floors each event's best value in ``"relative"`` normalisation."""
 
 
-def sample_bilinear(images: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
+def sample_bilinear(images: Tensor, xy: Tensor, image_index: Tensor | None = None) -> tuple[Tensor, Tensor]:
     r"""Read images by bilinear interpolation at sub-pixel positions (pixel centres at integers).
 
     Args:
-        images: :math:`(K, H, W)`.
-        xy: positions :math:`(K, N, 2)`, ``x`` the column and ``y`` the row, one set per image.
+        images: :math:`(M, H, W)`.
+        xy: positions :math:`(K, N, 2)`, ``x`` the column and ``y`` the row.
+        image_index: which image each position reads, int64 :math:`(K, N)` in ``[0, M)``; by default
+            row ``k`` of ``xy`` reads image ``k`` (then ``M`` must equal ``K``).
 
     Returns:
         ``(values, inside)``, both :math:`(K, N)`: the interpolated values (0 where outside) and whether
@@ -96,9 +98,17 @@ def sample_bilinear(images: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
         >>> sample_bilinear(image, torch.tensor([[[0.5, 0.5], [3.0, 0.0]]]))
         (tensor([[2., 0.]]), tensor([[ True, False]]))
     """
-    if images.ndim != 3 or xy.ndim != 3 or xy.shape[-1] != 2 or xy.shape[0] != images.shape[0]:
+    if (
+        images.ndim != 3
+        or xy.ndim != 3
+        or xy.shape[-1] != 2
+        or (image_index is None and xy.shape[0] != images.shape[0])
+        or (image_index is not None and image_index.shape != xy.shape[:2])
+    ):
         raise ShapeError(
-            f"images must be (K, H, W) and xy (K, N, 2), got {tuple(images.shape)} and {tuple(xy.shape)}"
+            f"images must be (M, H, W), xy (K, N, 2) and image_index (K, N) or None for M = K, got "
+            f"{tuple(images.shape)}, {tuple(xy.shape)} and "
+            f"{None if image_index is None else tuple(image_index.shape)}"
         )
     height, width = images.shape[-2:]
     x, y = xy[..., 0], xy[..., 1]
@@ -106,14 +116,15 @@ def sample_bilinear(images: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
     col = x.detach().floor().clamp(0, max(width - 2, 0))
     row = y.detach().floor().clamp(0, max(height - 2, 0))
     fx, fy = (x - col).clamp(0, 1), (y - row).clamp(0, 1)
-    col, row = col.long(), row.long()
-    flat = images.flatten(1)
-    base = row * width + col
+    if image_index is None:
+        image_index = torch.arange(xy.shape[0], device=xy.device)[:, None]
+    flat = images.reshape(-1)
+    base = image_index * (height * width) + row.long() * width + col.long()
     right = min(1, width - 1)
     down = width if height > 1 else 0
 
     def tap(offset: int) -> Tensor:
-        return flat.gather(1, base + offset)
+        return flat[base + offset]
 
     top = tap(0) * (1 - fx) + tap(right) * fx
     bottom = tap(down) * (1 - fx) + tap(down + right) * fx
@@ -188,9 +199,11 @@ def data_cost(
         iwes = splat_events(
             warped, (height, width), torch.stack([positive, 1 - positive])[:, None], sigma=sigma
         )
-        values, inside = sample_bilinear(iwes.flatten(0, 1), warped.repeat(2, 1, 1))
-        values = torch.where(events.p > 0, *values.unflatten(0, (2, -1)))
-        inside = inside[: warped.shape[0]]
+        # Image k of polarity 0 (positive) is k, of polarity 1 is K + k.
+        own = (events.p <= 0).long() * params.shape[0] + torch.arange(params.shape[0], device=params.device)[
+            :, None
+        ]
+        values, inside = sample_bilinear(iwes.flatten(0, 1), warped, own)
         iwes = iwes.amax(dim=0)
     else:
         iwes = splat_events(warped, (height, width), sigma=sigma)
