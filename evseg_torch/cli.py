@@ -112,6 +112,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     synthetic.add_argument("--seeds", type=_seed_range, default=list(range(20)), help="seeds (default 0-19)")
     synthetic.add_argument("--config", type=Path, help="YAML config")
+    synthetic.add_argument(
+        "--pipeline-seeds",
+        type=_seed_range,
+        help="run the benchmark once per pipeline seed (the config's `seed`), e.g. 0-2, and average over all "
+        "runs (default: the config's seed)",
+    )
     synthetic.add_argument("--json", type=Path, help="also write the results as JSON")
     synthetic.set_defaults(run=_evaluate_synthetic)
     eed = protocols.add_parser(
@@ -335,22 +341,26 @@ def _simulate(args) -> int:
 
 
 def _evaluate_synthetic(args) -> int:
-    from evseg_torch.config import SegmenterConfig, load_config
+    from evseg_torch.config import SegmenterConfig, load_config, replace_config
     from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
     from evseg_torch.pipeline import CascadedSegmenter
 
     config = load_config(args.config) if args.config else SegmenterConfig()
-    segmenter = CascadedSegmenter((180, 240), config)
-    scores = evaluate_synthetic(segmenter, args.seeds, progress=not args.quiet)
+    runs = {}
+    for pipeline_seed in args.pipeline_seeds or [config.seed]:
+        segmenter = CascadedSegmenter((180, 240), replace_config(config, seed=pipeline_seed))
+        runs[pipeline_seed] = evaluate_synthetic(segmenter, args.seeds, progress=not args.quiet)
     print(
-        f"{'seed':>4} {'IMOs':>4} {'events':>7} {'accuracy':>8} {'IoU':>6} {'detect':>6} "
+        f"{'run':>3} {'seed':>4} {'IMOs':>4} {'events':>7} {'accuracy':>8} {'IoU':>6} {'detect':>6} "
         f"{'count':>5} {'ms':>7}"
     )
-    for s in scores:
-        print(
-            f"{s.seed:>4} {s.n_objects:>4} {s.n_events:>7} {s.accuracy:>8.3f} {s.iou:>6.3f} "
-            f"{s.detection:>6.2f} {s.count_error:>+5d} {s.time_ms:>7.0f}"
-        )
+    for pipeline_seed, scores in runs.items():
+        for s in scores:
+            print(
+                f"{pipeline_seed:>3} {s.seed:>4} {s.n_objects:>4} {s.n_events:>7} {s.accuracy:>8.3f} "
+                f"{s.iou:>6.3f} {s.detection:>6.2f} {s.count_error:>+5d} {s.time_ms:>7.0f}"
+            )
+    scores = [score for run in runs.values() for score in run]
     summary = summarize(scores)
     print(
         f"mean: accuracy {summary['accuracy']:.3f}, IMO IoU {summary['iou']:.3f}, "
@@ -358,7 +368,13 @@ def _evaluate_synthetic(args) -> int:
         f"cluster-count error {summary['count_error']:+.2f} (|.| {summary['abs_count_error']:.2f}), "
         f"median {summary['time_ms_median']:.0f} ms per window"
     )
-    _write_json(args.json, {"summary": summary, "scenes": [vars(s) for s in scores]})
+    _write_json(
+        args.json,
+        {
+            "summary": summary,
+            "runs": {seed: [vars(s) for s in run] for seed, run in runs.items()},
+        },
+    )
     return 0
 
 

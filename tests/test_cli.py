@@ -205,3 +205,17 @@ def test_evaluate_eed_on_a_real_sequence(real_data, tmp_path, capsys):
     assert row["paper"]["IROS 2021"] == 100.0
     assert row["detected"] >= 1 and 0 < row["mean_iou"] < 1
     assert (tmp_path / "figures" / "occlusions.png").stat().st_size > 10_000
+
+
+def test_evaluate_synthetic_over_pipeline_seeds(tmp_path, capsys):
+    out = tmp_path / "synthetic.json"
+    code = main(
+        ["--quiet", "evaluate", "synthetic", "--seeds", "1", "--pipeline-seeds", "0-1", "--json", str(out)]
+    )
+    assert code == 0
+    table = capsys.readouterr().out
+    rows = [line.split() for line in table.splitlines() if line.split()[:1] in (["0"], ["1"])]
+    assert [row[:2] for row in rows] == [["0", "1"], ["1", "1"]]  # pipeline seed, scene seed
+    result = json.loads(out.read_text())
+    assert sorted(result["runs"]) == ["0", "1"] and result["summary"]["scenes"] == 2
+    assert all(run[0]["accuracy"] > 0.8 for run in result["runs"].values())
