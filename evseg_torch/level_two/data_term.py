@@ -195,16 +195,11 @@ def data_cost(
         warped = warped + margin
         height, width = height + 2 * margin, width + 2 * margin
     if polarity:
-        positive = (events.p > 0).to(warped.dtype)
-        iwes = splat_events(
-            warped, (height, width), torch.stack([positive, 1 - positive])[:, None], sigma=sigma
-        )
-        # Image k of polarity 0 (positive) is k, of polarity 1 is K + k.
-        own = (events.p <= 0).long() * params.shape[0] + torch.arange(params.shape[0], device=params.device)[
-            :, None
-        ]
+        iwes = splat_events(warped, (height, width), sigma=sigma, polarity=events.p)  # (K, 2, H, W)
+        # Image 2 k reads model k's positive events, 2 k + 1 its negative ones.
+        own = 2 * torch.arange(params.shape[0], device=params.device)[:, None] + (events.p <= 0).long()
         values, inside = sample_bilinear(iwes.flatten(0, 1), warped, own)
-        iwes = iwes.amax(dim=0)
+        iwes = iwes.amax(dim=1)
     else:
         iwes = splat_events(warped, (height, width), sigma=sigma)
         values, inside = sample_bilinear(iwes, warped)

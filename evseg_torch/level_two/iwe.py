@@ -83,6 +83,7 @@ def splat_events(
     weights: Tensor | None = None,
     sigma: float = 1.0,
     truncate: float = 3.0,
+    polarity: Tensor | None = None,
 ) -> Tensor:
     r"""Image of (warped) events by bilinear voting and a Gaussian blur.
 
@@ -94,9 +95,13 @@ def splat_events(
             (so K weightings of shared events give K images); ``None`` means 1 for every event.
         sigma: standard deviation of the Gaussian blur in pixels; 0 means no blur.
         truncate: the blur kernel reaches ``ceil(truncate * sigma)`` pixels each side.
+        polarity: optional per-event polarity :math:`(..., N)` (broadcast like ``weights``); when
+            given, the events of each sign make their own image: channel 0 the positive events
+            (``polarity > 0``), channel 1 the others.
 
     Returns:
-        The images, :math:`(..., H, W)` with the broadcast leading dimensions.
+        The images, :math:`(..., H, W)` with the broadcast leading dimensions, or
+        :math:`(..., 2, H, W)` with ``polarity``.
 
     Raises:
         ShapeError: if ``xy`` is not :math:`(..., N, 2)`, ``weights`` does not broadcast, or
@@ -106,11 +111,23 @@ def splat_events(
     Examples:
         >>> splat_events(torch.rand(4, 100, 2) * 7, (8, 8)).shape
         torch.Size([4, 8, 8])
+        >>> splat_events(torch.rand(4, 100, 2) * 7, (8, 8), polarity=torch.randn(100).sign()).shape
+        torch.Size([4, 2, 8, 8])
     """
     height, width = _check_sensor_size(sensor_size)
     _check_points(xy, "xy")
     if not xy.is_floating_point():
         raise ShapeError(f"xy must be a floating-point tensor, got {xy.dtype}")
+    if polarity is not None:
+        if not isinstance(polarity, Tensor) or polarity.ndim == 0 or polarity.shape[-1] != xy.shape[-2]:
+            raise ShapeError(
+                f"polarity must be a tensor (..., {xy.shape[-2]}) to match xy {tuple(xy.shape)}, got "
+                f"{tuple(polarity.shape) if isinstance(polarity, Tensor) else type(polarity).__name__}"
+            )
+        positive = (polarity > 0).to(xy.dtype)
+        split = torch.stack([positive, 1 - positive], dim=-2)
+        weights = split if weights is None else weights.unsqueeze(-2) * split
+        xy = xy.unsqueeze(-3)
     batch_shape = xy.shape[:-2]
     if weights is not None:
         if weights.ndim == 0 or weights.shape[-1] != xy.shape[-2]:
@@ -235,8 +252,9 @@ class ImageOfWarpedEvents(nn.Module):
         truncate: the blur kernel reaches ``ceil(truncate * sigma)`` pixels each side.
 
     Shape:
-        - Input: ``xy`` :math:`(..., N, 2)`, optional ``weights`` :math:`(..., N)`.
-        - Output: :math:`(..., H, W)`.
+        - Input: ``xy`` :math:`(..., N, 2)`, optional ``weights`` and ``polarity`` :math:`(..., N)`.
+        - Output: :math:`(..., H, W)`, or :math:`(..., 2, H, W)` with ``polarity`` (see
+          :func:`splat_events`).
 
     Examples:
         >>> ImageOfWarpedEvents((8, 8))(torch.rand(2, 30, 2) * 7).shape
@@ -250,8 +268,8 @@ class ImageOfWarpedEvents(nn.Module):
         self.sigma = float(sigma)
         self.truncate = float(truncate)
 
-    def forward(self, xy: Tensor, weights: Tensor | None = None) -> Tensor:
-        return splat_events(xy, self.sensor_size, weights, self.sigma, self.truncate)
+    def forward(self, xy: Tensor, weights: Tensor | None = None, polarity: Tensor | None = None) -> Tensor:
+        return splat_events(xy, self.sensor_size, weights, self.sigma, self.truncate, polarity)
 
     def extra_repr(self) -> str:
         return f"sensor_size={self.sensor_size}, sigma={self.sigma}, truncate={self.truncate}"

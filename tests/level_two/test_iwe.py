@@ -106,10 +106,37 @@ class TestSplatEvents:
         events = EventBatch(xy, t, torch.ones(20, dtype=torch.float64))
         assert torch.autograd.gradcheck(lambda p: warped_iwe(model, events, p), (params,), fast_mode=True)
 
+    def test_polarity_splits_the_image(self):
+        xy, weights = torch.rand(3, 30, 2) * 7, torch.rand(3, 30)
+        polarity = torch.tensor([1.0, -1.0, 0.0]).repeat(10)  # 0 (no sign) counts as negative
+        split = splat_events(xy, (8, 8), weights, polarity=polarity)
+        assert split.shape == (3, 2, 8, 8)
+        torch.testing.assert_close(split.sum(1), splat_events(xy, (8, 8), weights))
+        positive = polarity > 0
+        torch.testing.assert_close(split[:, 0], splat_events(xy[:, positive], (8, 8), weights[:, positive]))
+        torch.testing.assert_close(split[:, 1], splat_events(xy[:, ~positive], (8, 8), weights[:, ~positive]))
+        # Shared events, K weightings and one polarity per event.
+        assert splat_events(xy[0], (8, 8), weights, polarity=polarity).shape == (3, 2, 8, 8)
+        with pytest.raises(ShapeError, match="polarity"):
+            splat_events(xy, (8, 8), polarity=polarity[:5])
+        with pytest.raises(ShapeError, match="polarity"):
+            splat_events(xy, (8, 8), polarity=[1.0] * 30)
+
+    def test_gradcheck_with_polarity(self):
+        xy = _inside(20).requires_grad_()
+        polarity = torch.tensor([1.0, -1.0], dtype=torch.float64).repeat(10)
+        assert torch.autograd.gradcheck(
+            lambda a: splat_events(a, (8, 8), polarity=polarity), (xy,), fast_mode=True
+        )
+
     def test_module(self):
         xy, weights = torch.rand(3, 30, 2) * 7, torch.rand(3, 30)
         module = ImageOfWarpedEvents((8, 8), sigma=0.7)
         torch.testing.assert_close(module(xy, weights), splat_events(xy, (8, 8), weights, sigma=0.7))
+        polarity = torch.randn(30).sign()
+        torch.testing.assert_close(
+            module(xy, weights, polarity), splat_events(xy, (8, 8), weights, sigma=0.7, polarity=polarity)
+        )
         assert "sigma=0.7" in repr(module)
 
 
