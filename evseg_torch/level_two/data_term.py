@@ -199,7 +199,6 @@ def data_cost(
         # Image 2 k reads model k's positive events, 2 k + 1 its negative ones.
         own = 2 * torch.arange(params.shape[0], device=params.device)[:, None] + (events.p <= 0).long()
         values, inside = sample_bilinear(iwes.flatten(0, 1), warped, own)
-        iwes = iwes.amax(dim=1)
     else:
         iwes = splat_events(warped, (height, width), sigma=sigma)
         values, inside = sample_bilinear(iwes, warped)
