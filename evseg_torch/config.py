@@ -51,6 +51,9 @@ class FeatureConfig:
         lk_max_level: pyramid levels of Lucas-Kanade.
         fb_threshold: forward-backward round-trip error above which a track is dropped, pixels.
         both_images: detect corners on the late image too and track them backwards, as the paper does.
+        guided_tracking: when a previous window's models are reused, start Lucas-Kanade where they
+            take each corner, without the pyramid; corners that none of them explains are tracked
+            cold (:func:`~evseg_torch.level_one.features.guided_tracks`).
     """
 
     sub_window: float = 1.0 / 3.0
@@ -62,6 +65,7 @@ class FeatureConfig:
     lk_max_level: int = 3
     fb_threshold: float = 0.25
     both_images: bool = True
+    guided_tracking: bool = True
 
 
 @dataclass(frozen=True)

@@ -264,6 +264,7 @@ class CascadedSegmenter(nn.Module):
             max_level=feats.lk_max_level,
             fb_threshold=feats.fb_threshold,
             both_images=feats.both_images,
+            **({"motion": self.motion, "initial_models": initial_models} if feats.guided_tracking else {}),
         )
         after_features = time.perf_counter()
         one = cfg.level_one

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from evseg_torch.errors import ConfigError, ModelError
+from evseg_torch.errors import ConfigError
 from evseg_torch.graphcut.alpha_expansion import alpha_expansion
 from evseg_torch.level_one.gc_ransac import (
     Correspondences,
@@ -253,13 +253,7 @@ def progressive_x(
     min_inliers = max(sample_size, int(minimum_point_number))
     params = np.zeros((0, model.n_params))
     if initial_models is not None:
-        initial = np.asarray(initial_models, dtype=np.float64)
-        if initial.ndim != 2 or initial.shape[1] != model.n_params or not np.isfinite(initial).all():
-            raise ModelError(
-                f"initial_models must be finite ({model.n_params} columns for {model.name}) "
-                f"of shape (M, {model.n_params}), got {initial.shape}"
-            )
-        params = initial.copy()
+        params = model.check_instances(initial_models)
     labels = np.full(n_points, OUTLIER, dtype=np.int64)
     if n_points < min_inliers:
         return ProgressiveXResult(np.zeros((0, model.n_params)), labels, 0, 0)

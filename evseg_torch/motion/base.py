@@ -95,6 +95,27 @@ class MotionModel(ABC):
     def n_params(self) -> int:
         return len(self.param_names)
 
+    def check_instances(self, params, name: str = "initial_models") -> np.ndarray:
+        """Validate a stack of model instances, e.g. a previous window's models.
+
+        Args:
+            params: :math:`(M, P)` finite parameters of this family.
+            name: the argument's name in the error message.
+
+        Returns:
+            A float64 copy :math:`(M, P)`.
+
+        Raises:
+            ModelError: not 2-D, the wrong width, or not finite.
+        """
+        instances = np.array(params, dtype=np.float64)
+        if instances.ndim != 2 or instances.shape[1] != self.n_params or not np.isfinite(instances).all():
+            raise ModelError(
+                f"{name} must be finite ({self.n_params} columns for {self.name}) "
+                f"of shape (M, {self.n_params}), got {instances.shape}"
+            )
+        return instances
+
     @abstractmethod
     def jacobian(self, xy):
         """Velocity Jacobian at pixel positions.

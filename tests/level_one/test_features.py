@@ -2,13 +2,14 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
+from evseg_torch.errors import ConfigError, EventFormatError, ModelError, ShapeError
 from evseg_torch.events import EVENT_DTYPE, as_events
 from evseg_torch.level_one.features import (
     Correspondences,
     detect_corners,
     event_image,
     extract_correspondences,
+    guided_tracks,
     to_uint8,
     track_features,
 )
@@ -148,6 +149,66 @@ class TestTrackFeatures:
         assert to_uint8(np.zeros(SENSOR)).max() == 0
 
 
+class TestGuidedTracks:
+    """A 12 px shift, beyond what Lucas-Kanade without a pyramid follows from a zero guess."""
+
+    SHIFT = np.array([12.0, -5.0])
+
+    def _pair(self):
+        base = _texture(np.random.default_rng(6), shape=(200, 270))
+        image0, image1 = base[10:190, 10:250], base[5:185, 22:262]  # image1 = image0 moved by SHIFT
+        points = detect_corners(image0, max_corners=150)
+        inside = np.all((points >= 25) & (points <= np.array([215, 155])), axis=1)
+        return image0, image1, points[inside]
+
+    def test_initial_guess_replaces_the_pyramid(self):
+        image0, image1, points = self._pair()
+        _, _, keep = track_features(image0, image1, points, max_level=0)
+        assert keep.mean() < 0.2  # no pyramid, no guess: LK stays stuck near the start
+        src, dst, keep = track_features(
+            image0, image1, points, max_level=0, initial=points - self.SHIFT + 1.0
+        )
+        assert keep.mean() > 0.9
+        np.testing.assert_allclose(dst[keep] - src[keep], np.tile(-self.SHIFT, (keep.sum(), 1)), atol=0.05)
+
+    def test_picks_the_right_candidate(self):
+        image0, image1, points = self._pair()
+        right, wrong = points - self.SHIFT + 0.7, points + self.SHIFT
+        for candidates in (np.stack([wrong, right]), np.stack([right, wrong])):
+            src, dst, keep = guided_tracks(image0, image1, points, candidates)
+            assert keep.mean() > 0.9
+            np.testing.assert_allclose(
+                dst[keep] - src[keep], np.tile(-self.SHIFT, (keep.sum(), 1)), atol=0.05
+            )
+
+    def test_unexplained_points_are_tracked_cold(self):
+        image0, image1, points = self._pair()
+        src, dst, keep = guided_tracks(image0, image1, points, (points + self.SHIFT)[None])
+        cold = track_features(image0, image1, points)
+        assert keep.mean() > 0.9 and keep.sum() >= cold.keep.sum() - 2
+        # A random texture may hold a patch that the wrong guess matches both ways, hence 95 %.
+        right = np.linalg.norm(dst[keep] - src[keep] + self.SHIFT, axis=1) < 0.05
+        assert right.mean() >= 0.95
+
+    def test_bad_input(self):
+        image0, image1, points = self._pair()
+        with pytest.raises(ShapeError):
+            guided_tracks(image0, image1, points, points)
+        with pytest.raises(ShapeError):
+            guided_tracks(image0, image1, points, np.zeros((0, len(points), 2)))
+        with pytest.raises(ShapeError, match="finite"):
+            guided_tracks(image0, image1, points, np.full((1, len(points), 2), np.nan))
+        # A diverged model's guesses far outside the image only fail, like any bad guess.
+        _, _, keep = guided_tracks(image0, image1, points, np.full((1, len(points), 2), 1e30))
+        assert keep.mean() > 0.9
+        with pytest.raises(ShapeError):
+            track_features(image0, image1, points, initial=points[:-1])
+        with pytest.raises(ShapeError):
+            track_features(image0, image1, points, initial=np.full_like(points, np.nan))
+        src, dst, keep = guided_tracks(image0, image1, points[:0], np.zeros((2, 0, 2)))
+        assert src.shape == dst.shape == (0, 2) and keep.shape == (0,)
+
+
 def _events(xy, t_us):
     data = np.empty(len(t_us), dtype=EVENT_DTYPE)
     data["t"], data["x"], data["y"], data["p"] = t_us, xy[:, 0], xy[:, 1], 1
@@ -252,14 +313,20 @@ def _agreement(scene, result, radius=3):
     The layers visible within ``radius`` px of a track's start all count: a corner on an occluding
     silhouette is made of both layers' events, and the label image cannot tell which it follows.
     """
+    agree = np.zeros(len(result), dtype=bool)
+    for label in range(len(scene.motions)):
+        agree |= _agreement_with(scene, result, label, radius)
+    return agree
+
+
+def _agreement_with(scene, result, label, radius=3):
+    """:func:`_agreement` with layer ``label`` alone."""
     labels = scene.label_image_at(result.t_src)
     rows, cols = np.rint(result.src[:, 1]).astype(int), np.rint(result.src[:, 0]).astype(int)
-    agree = np.zeros(len(result), dtype=bool)
-    for label, motion in enumerate(scene.motions):
-        near = ndimage.binary_dilation(labels == label, np.ones((2 * radius + 1,) * 2))[rows, cols]
-        truth = _exact_track(motion.model, motion.params, result.src, result.t_src, result.t_dst)
-        agree |= near & (np.linalg.norm(result.dst - truth, axis=1) < 1.5)
-    return agree
+    motion = scene.motions[label]
+    near = ndimage.binary_dilation(labels == label, np.ones((2 * radius + 1,) * 2))[rows, cols]
+    truth = _exact_track(motion.model, motion.params, result.src, result.t_src, result.t_dst)
+    return near & (np.linalg.norm(result.dst - truth, axis=1) < 1.5)
 
 
 def test_tracks_follow_true_motions():
@@ -292,3 +359,50 @@ def test_late_image_corners_add_tracks():
     np.testing.assert_array_equal(both.src[: len(early)], early.src)
     gaps = np.linalg.norm(both.dst[len(early) :, None] - early.dst[None], axis=-1)
     assert gaps.min() > 2.0
+
+
+def test_guided_tracking_follows_the_previous_motions():
+    """Scenes of the track-accuracy test, guided by their true motions 5 % off (a previous window's)."""
+    rates, cold_rates = [], []
+    for seed in range(5):
+        scene = make_scene(
+            SENSOR, 0.03, 2, n_events=40_000, speed_range=(120.0, 600.0), min_relative_speed=120.0, rng=seed
+        )
+        params = np.stack([motion.params for motion in scene.motions])
+        params *= 1 + np.random.default_rng(seed).normal(0, 0.05, params.shape)
+        guide = {"motion": scene.motions[0].model, "initial_models": params}
+        guided = extract_correspondences(scene.events, SENSOR, t_ref=scene.t0_us, **guide)
+        cold = extract_correspondences(scene.events, SENSOR, t_ref=scene.t0_us)
+        assert len(guided) >= 0.9 * len(cold)
+        rates.append(_agreement(scene, guided).mean())
+        cold_rates.append(_agreement(scene, cold).mean())
+    assert np.mean(rates) >= 0.9 and np.mean(rates) >= np.mean(cold_rates) - 0.01, (rates, cold_rates)
+
+
+def test_guided_tracking_still_tracks_a_motion_it_lacks():
+    """An object whose motion the guide lacks (one that just appeared) keeps most of its cold tracks."""
+    guided_count, cold_count = 0, 0
+    for seed in range(5):
+        scene = make_scene(
+            SENSOR, 0.03, 2, n_events=40_000, speed_range=(120.0, 600.0), min_relative_speed=120.0, rng=seed
+        )
+        known = np.stack([motion.params for motion in scene.motions[:2]])  # object 2 is new
+        guide = {"motion": scene.motions[0].model, "initial_models": known}
+        guided = extract_correspondences(scene.events, SENSOR, t_ref=scene.t0_us, **guide)
+        cold = extract_correspondences(scene.events, SENSOR, t_ref=scene.t0_us)
+        guided_count += _agreement_with(scene, guided, 2).sum()
+        cold_count += _agreement_with(scene, cold, 2).sum()
+    assert guided_count >= 0.7 * cold_count, (guided_count, cold_count)
+
+
+def test_guided_tracking_bad_input():
+    events = make_scene(SENSOR, 0.03, 1, rng=0).events
+    model = Affine4(SENSOR)
+    with pytest.raises(ConfigError, match="motion"):
+        extract_correspondences(events, SENSOR, initial_models=np.zeros((1, 4)))
+    with pytest.raises(ModelError, match="initial_models"):
+        extract_correspondences(events, SENSOR, motion=model, initial_models=np.zeros((1, 3)))
+    # No models at all: every corner is tracked cold, as without a guide.
+    cold = extract_correspondences(events, SENSOR)
+    empty = extract_correspondences(events, SENSOR, motion=model, initial_models=np.zeros((0, 4)))
+    np.testing.assert_array_equal(cold.dst, empty.dst)
