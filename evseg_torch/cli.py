@@ -134,6 +134,13 @@ def _parser() -> argparse.ArgumentParser:
     eed.add_argument(
         "--window-ms", type=float, help="window length centred on each box (default from the config)"
     )
+    eed.add_argument(
+        "--reference",
+        choices=["box", "window-start"],
+        default="box",
+        help="time the clusters are compensated to: the box time (default) or the window's first event, "
+        "EMSGC's and the paper's convention",
+    )
     eed.add_argument("--json", type=Path, help="also write the results as JSON")
     eed.add_argument(
         "--figures",
@@ -386,6 +393,8 @@ def _evaluate_eed(args) -> int:
 
     config = load_config(args.config or _bundled_config("eed.yaml"))
     window_ms = args.window_ms or config.window.window_ms
+    reference = args.reference.replace("-", "_")
+    compensated = "the box time" if reference == "box" else "the window's first event"
     rows = {}
     for folder in args.folders:
         sequence = load_eed_sequence(folder)
@@ -411,15 +420,23 @@ def _evaluate_eed(args) -> int:
             sequence.boxes,
             window_ms=window_ms,
             min_events=config.window.min_events,
+            reference=reference,
             progress=not args.quiet,
             on_window=draw if args.figures else None,
         )
-        rows[sequence.name] = {**detection_rate(results), "paper": PAPER_TABLE_I.get(sequence.name, {})}
+        rows[sequence.name] = {
+            **detection_rate(results),
+            "reference": reference,
+            "paper": PAPER_TABLE_I.get(sequence.name, {}),
+        }
         if panels:
             args.figures.mkdir(parents=True, exist_ok=True)
-            title = f"EED {sequence.name}: {window_ms:g} ms windows centred on the GT boxes"
+            title = f"EED {sequence.name}: {window_ms:g} ms windows centred on the GT boxes, at {compensated}"
             save_figure(boxes_figure(panels, title), args.figures / f"{sequence.name}.png")
-    print(f"EED detection rate (%), IoU > 0.5, windows of {window_ms:g} ms centred on each box")
+    print(
+        f"EED detection rate (%), IoU > 0.5, windows of {window_ms:g} ms centred on each box, "
+        f"clusters compensated to {compensated}"
+    )
     print(
         f"{'sequence':<20} {'boxes':>5} {'ours':>7} {'overlap':>7} {'IoU':>5} | "
         f"{'EED':>6} {'EMSMC':>6} {'EMSGC':>6} {'IROS21':>6}"

@@ -205,6 +205,7 @@ def test_evaluate_eed_on_a_real_sequence(real_data, tmp_path, capsys):
     assert row["paper"]["IROS 2021"] == 100.0
     assert row["detected"] >= 1 and 0 < row["mean_iou"] < 1
     assert (tmp_path / "figures" / "occlusions.png").stat().st_size > 10_000
+    assert row["reference"] == "box"
 
 
 def test_evaluate_synthetic_over_pipeline_seeds(tmp_path, capsys):

@@ -3,7 +3,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from evseg_torch.errors import ReaderError
+from evseg_torch.errors import ConfigError, ReaderError
 from evseg_torch.evaluation.eed import (
     EED_SENSOR_SIZE,
     BoxResult,
@@ -118,6 +118,22 @@ class TestEvaluateBoxes:
         assert first.intersection_over_gt == 1.0 and first.n_clusters == 2
         np.testing.assert_array_equal(first.predicted_box, gt[0])
         assert not second.evaluable and second.n_events == 250 and not second.detected
+
+    def test_window_start_reference(self):
+        events = _events(2000)
+        seen = []
+
+        def stub(window, t_ref):
+            seen.append(t_ref)
+            return _segmentation(np.zeros((len(window), 2)), np.zeros(len(window)))
+
+        gt = np.array([[0.0, 0.0, 5.0, 5.0]])
+        evaluate_boxes(
+            stub, events, np.array([0.01]), gt, window_ms=4, min_events=10, reference="window_start"
+        )
+        assert seen == [0.008]  # the first event of the window [8, 12) ms
+        with pytest.raises(ConfigError, match="reference"):
+            evaluate_boxes(stub, events, np.array([0.01]), gt, window_ms=4, reference="centre")
 
     def test_no_candidate_box(self):
         def background_only(window, t_ref):
