@@ -34,6 +34,7 @@ import maxflow
 import numpy as np
 
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
+from evseg_torch.graphcut.alpha_expansion import PottsGraph, potts_graph
 from evseg_torch.level_one.neighborhood import adjacency, neighborhood_graph
 from evseg_torch.motion.base import MotionModel
 
@@ -131,6 +132,7 @@ class Correspondences:
         edges: neighbourhood graph :math:`(E, 2)`.
         neighbors: :math:`(N, D)` neighbour indices padded with ``-1``, ``D`` the largest degree.
         degree: :math:`(N,)` number of neighbours.
+        potts: ``edges`` as the Potts graph of PEARL's α-expansions, validated and laid out once.
     """
 
     model: MotionModel
@@ -142,6 +144,7 @@ class Correspondences:
     edges: np.ndarray
     neighbors: np.ndarray
     degree: np.ndarray
+    potts: PottsGraph
 
     @classmethod
     def build(
@@ -185,7 +188,8 @@ class Correspondences:
         padded = np.full((n_points, width), -1, dtype=np.int64)
         padded[np.repeat(np.arange(n_points), degree), slot] = indices
         design = (model.jacobian(src) * dt[:, None, None]).reshape(2 * n_points, model.n_params)
-        return cls(model, src, dst, dt, design, (dst - src).reshape(-1), edges, padded, degree)
+        potts = potts_graph(edges, n_nodes=n_points)
+        return cls(model, src, dst, dt, design, (dst - src).reshape(-1), edges, padded, degree, potts)
 
     @property
     def n_points(self) -> int:

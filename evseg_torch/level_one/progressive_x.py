@@ -121,7 +121,7 @@ def pearl(
         unary = _pearl_unary(data, params, threshold, weight)
         new_labels = alpha_expansion(
             unary,
-            data.edges,
+            data.potts,
             smoothness=weight,
             label_cost=label_cost,
             init_labels=labels,
