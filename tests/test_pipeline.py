@@ -86,6 +86,24 @@ def test_stream_reuses_models_and_places_windows():
     assert [r.offset for r in from_chunks] == offsets
 
 
+def test_stream_guides_tracking_with_the_previous_models():
+    """After the first window, tracks follow the previous window's motions (guided) unless disabled."""
+    scene = make_scene((180, 240), 0.06, n_objects=1, rng=4)
+    guided, cold = (
+        list(CascadedSegmenter((180, 240), guided_tracking=flag).stream(scene.events, window_ms=30))
+        for flag in (True, False)
+    )
+    np.testing.assert_array_equal(guided[0].feature_tracks.dst, cold[0].feature_tracks.dst)
+    later, reference = guided[1].feature_tracks, cold[1].feature_tracks
+    assert not np.array_equal(later.dst, reference.dst)
+    assert len(later) >= 0.8 * len(reference)
+    # Both find the object: two clusters whose labels agree with the truth on most events.
+    for result in (guided[1], cold[1]):
+        truth = scene.labels[result.offset : result.offset + len(result.labels)]
+        agree = max(np.mean(result.labels == truth), np.mean(result.labels == 1 - truth))
+        assert result.n_clusters == 2 and agree > 0.85
+
+
 def test_module_moves_with_dtype(scene):
     segmenter = CascadedSegmenter(sensor_size=SIZE).double()
     assert isinstance(segmenter, torch.nn.Module)
