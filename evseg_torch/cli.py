@@ -434,11 +434,11 @@ def _evaluate_eed(args) -> int:
             title = f"EED {sequence.name}: {window_ms:g} ms windows centred on the GT boxes, at {compensated}"
             save_figure(boxes_figure(panels, title), args.figures / f"{sequence.name}.png")
     print(
-        f"EED detection rate (%), IoU > 0.5, windows of {window_ms:g} ms centred on each box, "
-        f"clusters compensated to {compensated}"
+        f"EED detection rate (%), IoU > 0.5 (I/GT, I/pred: intersection over the GT or the predicted box's "
+        f"area > 0.5), windows of {window_ms:g} ms centred on each box, clusters compensated to {compensated}"
     )
     print(
-        f"{'sequence':<20} {'boxes':>5} {'ours':>7} {'overlap':>7} {'IoU':>5} | "
+        f"{'sequence':<20} {'boxes':>5} {'ours':>7} {'I/GT':>7} {'I/pred':>7} {'IoU':>5} | "
         f"{'EED':>6} {'EMSMC':>6} {'EMSGC':>6} {'IROS21':>6}"
     )
     for name, row in rows.items():
@@ -446,6 +446,7 @@ def _evaluate_eed(args) -> int:
         print(
             f"{name:<20} {row['evaluable']:>5} {row['detection_rate']:>7.2f} "
             f"{row.get('detection_rate_overlap', 0):>7.2f} "
+            f"{row.get('detection_rate_over_predicted', 0):>7.2f} "
             f"{row.get('mean_iou', 0):>5.2f} | "
             + " ".join(f"{paper.get(k, float('nan')):>6.2f}" for k in ("EED", "EMSMC", "EMSGC", "IROS 2021"))
         )

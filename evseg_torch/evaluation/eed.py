@@ -18,8 +18,10 @@ For each ground-truth box at time ``t_b``:
    bounding box of the pixels of its compensated count image (σ = 0) that hold more than
    ``min_count`` events (EMSGC's output rule, which drops isolated noise).
 4. The GT box is matched to the non-background cluster whose box has the highest IoU with it; the
-   object is **detected when that IoU > 0.5**. The intersection over the GT area of the same match is
-   reported too (the looser "overlap" reading of the original protocol).
+   object is **detected when that IoU > 0.5**. Two looser readings of the original protocol's "overlap
+   by more than 50 %" are reported beside it for the same match: the intersection over the GT box's
+   area, and over the predicted box's area (under which a compensated object inside a larger GT box,
+   drawn around a motion-blurred APS image, counts as detected).
 
 Detection rate = detected / evaluable boxes.
 """
@@ -90,6 +92,7 @@ class BoxResult:
     iou: float
     intersection_over_gt: float
     n_clusters: int
+    intersection_over_predicted: float = 0.0
 
     @property
     def detected(self) -> bool:
@@ -174,9 +177,7 @@ def evaluate_boxes(
             iou = float(box_iou(box, gt))
             if iou > best_iou or np.isnan(best_box[0]):
                 best_box, best_iou = box, iou
-        overlap = (
-            float(box_intersection(best_box, gt) / (gt[2] * gt[3])) if not np.isnan(best_box[0]) else 0.0
-        )
+        intersection = float(box_intersection(best_box, gt)) if not np.isnan(best_box[0]) else 0.0
         result = BoxResult(
             float(t_s),
             gt,
@@ -184,8 +185,9 @@ def evaluate_boxes(
             len(window),
             best_box,
             best_iou,
-            np.nan_to_num(overlap),
+            _ratio(intersection, gt[2] * gt[3]),
             segmentation.n_clusters,
+            _ratio(intersection, best_box[2] * best_box[3]),
         )
         results.append(result)
         if on_window is not None:
@@ -193,8 +195,15 @@ def evaluate_boxes(
     return results
 
 
+def _ratio(intersection: float, area: float) -> float:
+    """``intersection / area``, 0 for an empty or missing box."""
+    return intersection / float(area) if area > 0 else 0.0
+
+
 def detection_rate(results: list[BoxResult]) -> dict[str, float]:
-    """Detection rate (IoU > 0.5) and mean scores over the evaluable boxes."""
+    """Detection rate (IoU > 0.5), the two overlap readings (``detection_rate_overlap``: intersection
+    over GT area > 0.5, ``detection_rate_over_predicted``: over predicted area > 0.5) and the mean IoU,
+    over the evaluable boxes."""
     evaluable = [r for r in results if r.evaluable]
     if not evaluable:
         return {"boxes": len(results), "evaluable": 0, "detection_rate": float("nan")}
@@ -204,5 +213,7 @@ def detection_rate(results: list[BoxResult]) -> dict[str, float]:
         "detected": sum(r.detected for r in evaluable),
         "detection_rate": 100.0 * sum(r.detected for r in evaluable) / len(evaluable),
         "detection_rate_overlap": 100.0 * float(np.mean([r.intersection_over_gt > 0.5 for r in evaluable])),
+        "detection_rate_over_predicted": 100.0
+        * float(np.mean([r.intersection_over_predicted > 0.5 for r in evaluable])),
         "mean_iou": float(np.mean([r.iou for r in evaluable])),
     }

@@ -35,9 +35,9 @@ def _events(n, t0_us=0, step_us=10, size=(30, 40), seed=0):
     return events
 
 
-def _result(iou, evaluable=True, over_gt=0.0):
+def _result(iou, evaluable=True, over_gt=0.0, over_predicted=0.0):
     box = np.array([0.0, 0.0, 1.0, 1.0])
-    return BoxResult(0.0, box, evaluable, 10, box, iou, over_gt, 2)
+    return BoxResult(0.0, box, evaluable, 10, box, iou, over_gt, 2, over_predicted)
 
 
 class TestClusterBoxes:
@@ -74,12 +74,18 @@ class TestClusterBoxes:
 
 class TestDetectionRate:
     def test_counts_only_evaluable_boxes(self):
-        results = [_result(0.9, over_gt=0.95), _result(0.5, over_gt=0.8), _result(0.2), _result(1.0, False)]
+        results = [
+            _result(0.9, over_gt=0.95, over_predicted=0.95),
+            _result(0.5, over_gt=0.8, over_predicted=0.6),
+            _result(0.2, over_predicted=1.0),
+            _result(1.0, False, over_predicted=1.0),
+        ]
         assert [r.detected for r in results] == [True, False, False, False]
         rate = detection_rate(results)
         assert rate["boxes"] == 4 and rate["evaluable"] == 3 and rate["detected"] == 1
         assert rate["detection_rate"] == pytest.approx(100 / 3)
         assert rate["detection_rate_overlap"] == pytest.approx(200 / 3)
+        assert rate["detection_rate_over_predicted"] == pytest.approx(100.0)
         assert rate["mean_iou"] == pytest.approx((0.9 + 0.5 + 0.2) / 3)
 
     def test_nothing_evaluable(self):
@@ -115,9 +121,25 @@ class TestEvaluateBoxes:
         assert len(observed) == 1 and observed[0][0] is results[0] and observed[0][1] == 2  # evaluable only
         first, second = results
         assert first.evaluable and first.n_events == 400 and first.iou == 1.0 and first.detected
-        assert first.intersection_over_gt == 1.0 and first.n_clusters == 2
+        assert first.intersection_over_gt == 1.0 and first.intersection_over_predicted == 1.0
+        assert first.n_clusters == 2
         np.testing.assert_array_equal(first.predicted_box, gt[0])
         assert not second.evaluable and second.n_events == 250 and not second.detected
+
+    def test_overlap_readings_of_a_box_inside_the_gt_box(self):
+        def small_object(window, t_ref):
+            xy = np.concatenate(
+                [np.repeat([[12.0, 11.0], [16.0, 15.0]], 3, axis=0), np.zeros((len(window) - 6, 2))]
+            )
+            return _segmentation(xy, np.r_[np.ones(6), np.zeros(len(window) - 6)])
+
+        gt = np.array([[10.0, 10.0, 10.0, 10.0]])  # 100 px^2 around the object's 4 x 4 box
+        (result,) = evaluate_boxes(
+            small_object, _events(100), np.array([0.0005]), gt, window_ms=1, min_events=10
+        )
+        np.testing.assert_array_equal(result.predicted_box, [12.0, 11.0, 4.0, 4.0])
+        assert result.iou == pytest.approx(0.16) and result.intersection_over_gt == pytest.approx(0.16)
+        assert result.intersection_over_predicted == 1.0 and not result.detected
 
     def test_window_start_reference(self):
         events = _events(2000)
