@@ -6,6 +6,7 @@ little memory) repeats a handful of distinct synthetic 30 ms scenes one after an
 reported for each length, so one can check that memory does not grow with the recording's length.
 
     .venv/bin/python benchmarks/bench_stream.py [--minutes 1 2] [--scenes 8] [--events-per-scene 2500]
+        [--config CONFIG.yaml]
 """
 
 import argparse
@@ -53,8 +54,10 @@ CHILD = (
 )
 
 
-def run(path: Path, out: Path) -> dict:
+def run(path: Path, out: Path, config: Path | None = None) -> dict:
     args = ["--quiet", "segment", str(path), "--out", str(out), "--sensor-size", f"{SENSOR[0]}x{SENSOR[1]}"]
+    if config is not None:
+        args += ["--config", str(config)]
     start = time.perf_counter()
     child = subprocess.run(
         [sys.executable, "-c", CHILD, *args, "--window-ms", "30", "--overwrite"],
@@ -73,13 +76,14 @@ def main():
     parser.add_argument("--minutes", type=float, nargs="+", default=[1.0, 2.0])
     parser.add_argument("--scenes", type=int, default=8)
     parser.add_argument("--events-per-scene", type=int, default=2500)
+    parser.add_argument("--config", type=Path, help="YAML config for evseg segment (default: its own)")
     args = parser.parse_args()
     print(f"{'minutes':>7} {'events':>10} {'windows':>7} {'wall s':>8} {'events/s':>9} {'peak RSS MiB':>12}")
     with tempfile.TemporaryDirectory() as tmp:
         for minutes in args.minutes:
             path = Path(tmp) / f"stream_{minutes:g}min.npy"
             n_events = write_recording(path, minutes, args.scenes, args.events_per_scene)
-            result = run(path, Path(tmp) / "out")
+            result = run(path, Path(tmp) / "out", args.config)
             print(
                 f"{minutes:>7g} {n_events:>10} {result['windows']:>7} {result['wall_s']:>8.1f} "
                 f"{n_events / result['wall_s']:>9.0f} {result['peak_rss_mib']:>12.0f}"
