@@ -198,7 +198,8 @@ class CascadedSegmenter(nn.Module):
                 continue
             result = self._segment(window.events, None, previous)
             if self.config.level_one.reuse_models:
-                previous = result.models
+                # A refit that diverged (no motion of this sensor) would only derail the next window.
+                previous = result.models[self.motion.plausible(result.models)]
             yield replace(result, offset=window.offset, window_index=window.index)
 
     def _segment(self, events: np.ndarray, t_ref: float | None, initial_models) -> Segmentation:

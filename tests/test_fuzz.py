@@ -383,6 +383,11 @@ def _named_windows():
         "initial_models_wrong_width": (size, base, {"initial_models": np.zeros((2, 3))}),
         "initial_models_1d": (size, base, {"initial_models": np.zeros(4)}),
         "initial_models_huge": (size, base, {"initial_models": np.full((2, 4), 1e30)}),
+        "initial_models_overflowing": (
+            size,
+            base,
+            {"initial_models": np.array([[1e307, -1e307, 1e307, 1e307]])},
+        ),
         "initial_models_empty": (size, base, {"initial_models": np.zeros((0, 4))}),
         "outside_sensor": (size, _events([0, 1], [size[1], 0], [0, 0]), {}),
         "huge_coordinates": (size, np.array([[0.0, 1e9, 2, 1], [1e-3, 1, 2, 0]]), {}),

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -102,6 +104,23 @@ def test_stream_guides_tracking_with_the_previous_models():
         truth = scene.labels[result.offset : result.offset + len(result.labels)]
         agree = max(np.mean(result.labels == truth), np.mean(result.labels == 1 - truth))
         assert result.n_clusters == 2 and agree > 0.85
+
+
+def test_stream_does_not_reuse_diverged_models(monkeypatch):
+    """A window whose models are no image motion (a diverged refit) does not derail the next one."""
+    scene = make_scene(SIZE, 0.06, n_objects=1, rng=4)
+    segmenter = CascadedSegmenter(sensor_size=SIZE)
+    segment, reused = segmenter._segment, []
+
+    def diverging(events, t_ref, initial_models):
+        reused.append(initial_models)
+        result = segment(events, t_ref, initial_models)
+        return replace(result, models=1e12 * result.models)
+
+    monkeypatch.setattr(segmenter, "_segment", diverging)
+    results = list(segmenter.stream(scene.events, window_ms=20))
+    assert len(results) >= 2 and reused[0] is None
+    assert all(models.shape == (0, segmenter.motion.n_params) for models in reused[1:])
 
 
 def test_module_moves_with_dtype(scene):

@@ -519,7 +519,8 @@ def guided_tracks(
         image0: first image :math:`(H, W)`.
         image1: second image :math:`(H, W)`.
         points: positions ``(x, y)`` in ``image0``, :math:`(N, 2)`.
-        candidates: where each known motion takes each point, :math:`(K, N, 2)`.
+        candidates: where each known motion takes each point, :math:`(K, N, 2)`; a guess outside the
+            image or not finite fails, and its point is tracked cold.
         rescue_ratio: patch difference, relative to that of the kept tracks, above which a failed
             point is tracked cold.
         patch_radius: half-side in pixels of the compared patches.
@@ -534,20 +535,18 @@ def guided_tracks(
         :class:`Tracks` ``(src, dst, keep)`` with one row per point.
 
     Raises:
-        ShapeError: ``candidates`` is not finite :math:`(K, N, 2)` with ``K >= 1``.
+        ShapeError: ``candidates`` is not :math:`(K, N, 2)` with ``K >= 1``.
     """
     image0, image1 = (image if image.dtype == np.uint8 else to_uint8(image) for image in (image0, image1))
     src = np.array(points, dtype=np.float64)
     candidates = np.asarray(candidates, dtype=np.float64)
     if candidates.ndim != 3 or candidates.shape[0] < 1 or candidates.shape[1:] != src.shape:
         raise ShapeError(f"candidates must be (K, N, 2) for {src.shape[0]} points, got {candidates.shape}")
-    if not np.isfinite(candidates).all():
-        raise ShapeError("candidates must be finite positions")
     if src.shape[0] == 0:
         return track_features(image0, image1, src, **track)
-    # Wild guesses (a diverged model) fail at the border like any other bad guess, without overflow.
+    # Wild or non-finite guesses (a diverged model) fail at the border like any other bad guess.
     height, width = image0.shape
-    candidates = np.clip(candidates, -1.0, [width, height])
+    candidates = np.clip(np.where(np.isnan(candidates), -1.0, candidates), -1.0, [width, height])
     costs = _patch_differences(image0, image1, src, candidates, int(patch_radius))
     best = np.argmin(costs, axis=0)
     cost = costs[best, np.arange(len(src))]

@@ -30,6 +30,9 @@ import numpy as np
 
 from evseg_torch.errors import ModelError
 
+# Faster than this, a model moves a pixel across a megapixel sensor within a microsecond.
+MAX_SPEED = 1e9  # px/s
+
 
 def array_namespace(array):
     """``torch`` for torch tensors, else ``numpy``; never imports torch itself."""
@@ -95,24 +98,47 @@ class MotionModel(ABC):
     def n_params(self) -> int:
         return len(self.param_names)
 
+    def plausible(self, params) -> np.ndarray:
+        """Whether each instance is an image motion of this sensor at all.
+
+        An instance is plausible when its speed at the sensor's four corners stays within
+        :data:`MAX_SPEED` px/s; beyond, the arithmetic of warps and residuals overflows float64.
+
+        Args:
+            params: :math:`(M, P)` finite parameters.
+
+        Returns:
+            bool :math:`(M,)`.
+        """
+        height, width = self.sensor_size
+        corners = np.array([[0.0, 0.0], [width - 1.0, 0.0], [0.0, height - 1.0], [width - 1.0, height - 1.0]])
+        with np.errstate(over="ignore", invalid="ignore"):
+            speeds = np.linalg.norm(self.velocity(corners, np.asarray(params, dtype=np.float64)), axis=-1)
+        return np.all(speeds <= MAX_SPEED, axis=-1)
+
     def check_instances(self, params, name: str = "initial_models") -> np.ndarray:
         """Validate a stack of model instances, e.g. a previous window's models.
 
         Args:
-            params: :math:`(M, P)` finite parameters of this family.
+            params: :math:`(M, P)` finite, :meth:`plausible` parameters of this family.
             name: the argument's name in the error message.
 
         Returns:
             A float64 copy :math:`(M, P)`.
 
         Raises:
-            ModelError: not 2-D, the wrong width, or not finite.
+            ModelError: not 2-D, the wrong width, not finite, or not plausible.
         """
         instances = np.array(params, dtype=np.float64)
         if instances.ndim != 2 or instances.shape[1] != self.n_params or not np.isfinite(instances).all():
             raise ModelError(
                 f"{name} must be finite ({self.n_params} columns for {self.name}) "
                 f"of shape (M, {self.n_params}), got {instances.shape}"
+            )
+        wild = np.flatnonzero(~self.plausible(instances))
+        if len(wild):
+            raise ModelError(
+                f"{name} row {wild[0]} moves pixels faster than {MAX_SPEED:g} px/s: not an image motion"
             )
         return instances
 

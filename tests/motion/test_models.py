@@ -172,3 +172,23 @@ class TestConventions:
             Translation((0, 10))
         with pytest.raises(ModelError, match="focal"):
             Rotation3D(SENSOR, focal=(0.0, 1.0))
+
+
+class TestInstances:
+    @pytest.mark.parametrize("name", sorted(TRUE_PARAMS))
+    def test_plausible_and_check(self, name):
+        model = _model(name)
+        # The true parameters move pixels at hundreds of px/s; scaled by 1e12 they are no image motion.
+        stack = np.stack([TRUE_PARAMS[name], 1e12 * TRUE_PARAMS[name], np.full(model.n_params, 1e307)])
+        np.testing.assert_array_equal(model.plausible(stack), [True, False, False])
+        checked = model.check_instances(stack[:1])
+        np.testing.assert_array_equal(checked, stack[:1])
+        assert checked is not stack
+        with pytest.raises(ModelError, match="row 1 moves pixels faster"):
+            model.check_instances(stack)
+
+    def test_check_rejects_malformed(self):
+        model = _model("affine4")
+        for bad in (np.zeros(4), np.zeros((2, 3)), np.full((1, 4), np.nan)):
+            with pytest.raises(ModelError, match="initial_models must be finite"):
+                model.check_instances(bad)
