@@ -14,6 +14,7 @@ _FEATURES = {
     "detect_corners",
     "event_image",
     "extract_correspondences",
+    "guided_tracks",
     "track_features",
 }
 
@@ -36,6 +37,7 @@ __all__ = [
     "extract_correspondences",
     "gc_ransac",
     "graph_cut_inliers",
+    "guided_tracks",
     "neighborhood_graph",
     "pearl",
     "progressive_x",
