@@ -312,10 +312,7 @@ def track_features(
         ShapeError: images of different or non-2-D shapes, or ``points`` not :math:`(N, 2)`.
         ConfigError: a parameter is out of range.
     """
-    image0 = _check_image(image0, "image0")
-    image1 = _check_image(image1, "image1")
-    if image0.shape != image1.shape:
-        raise ShapeError(f"image0 and image1 must have the same shape, got {image0.shape} and {image1.shape}")
+    frames = _frame_pair(image0, image1)
     src = np.array(points, dtype=np.float64)
     if src.ndim != 2 or src.shape[1] != 2:
         raise ShapeError(f"points must be (N, 2), got shape {src.shape}")
@@ -333,7 +330,6 @@ def track_features(
             raise ShapeError(f"initial must be finite guesses of shape {src.shape}, got shape {guess.shape}")
     if src.shape[0] == 0:
         return Tracks(src, src.copy(), np.zeros(0, dtype=bool))
-    frames = [image if image.dtype == np.uint8 else to_uint8(image) for image in (image0, image1)]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iterations), float(epsilon))
     lk = {"winSize": tuple(int(v) for v in win_size), "criteria": criteria, "maxLevel": int(max_level)}
     if guess is not None:
@@ -341,7 +337,7 @@ def track_features(
     start = src.astype(np.float32).reshape(-1, 1, 2)
     forward, status, _ = cv2.calcOpticalFlowPyrLK(frames[0], frames[1], start, _lk_guess(guess, start), **lk)
     dst = forward.reshape(-1, 2).astype(np.float64)
-    height, width = image0.shape
+    height, width = frames[0].shape
     inside = (dst[:, 0] >= 0) & (dst[:, 0] <= width - 1) & (dst[:, 1] >= 0) & (dst[:, 1] <= height - 1)
     keep = (status.ravel() == 1) & inside & np.all(np.isfinite(dst), axis=1)
     # Only the forward results that can still be kept are tracked back: the same tracks, and a few
@@ -537,7 +533,7 @@ def guided_tracks(
     Raises:
         ShapeError: ``candidates`` is not :math:`(K, N, 2)` with ``K >= 1``.
     """
-    image0, image1 = (image if image.dtype == np.uint8 else to_uint8(image) for image in (image0, image1))
+    image0, image1 = _frame_pair(image0, image1)
     src = np.array(points, dtype=np.float64)
     candidates = np.asarray(candidates, dtype=np.float64)
     if candidates.ndim != 3 or candidates.shape[0] < 1 or candidates.shape[1:] != src.shape:
@@ -593,6 +589,15 @@ def _patch_differences(image0, image1, points, candidates, radius: int) -> np.nd
 def _lk_guess(guess: np.ndarray | None, start: np.ndarray) -> np.ndarray | None:
     """OpenCV's ``nextPts`` argument: the guesses as float32 :math:`(N, 1, 2)`, or ``None``."""
     return None if guess is None else guess.astype(np.float32).reshape(start.shape)
+
+
+def _frame_pair(image0, image1) -> tuple[np.ndarray, np.ndarray]:
+    """Two 2-D images of one shape as Lucas-Kanade's ``uint8`` frames (:func:`to_uint8` where needed)."""
+    image0 = _check_image(image0, "image0")
+    image1 = _check_image(image1, "image1")
+    if image0.shape != image1.shape:
+        raise ShapeError(f"image0 and image1 must have the same shape, got {image0.shape} and {image1.shape}")
+    return tuple(image if image.dtype == np.uint8 else to_uint8(image) for image in (image0, image1))
 
 
 def _check_image(image, name: str) -> np.ndarray:

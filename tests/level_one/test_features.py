@@ -196,6 +196,8 @@ class TestGuidedTracks:
             guided_tracks(image0, image1, points, points)
         with pytest.raises(ShapeError):
             guided_tracks(image0, image1, points, np.zeros((0, len(points), 2)))
+        with pytest.raises(ShapeError, match="same shape"):
+            guided_tracks(image0, image1[:-1], points, points[None])
         # A diverged model's guesses, far outside the image or not finite, only fail like any bad guess.
         for wild in (1e30, np.inf, np.nan):
             _, _, keep = guided_tracks(image0, image1, points, np.full((1, len(points), 2), wild))
