@@ -1,10 +1,23 @@
-"""Run every benchmark script in this folder, one after another (``make bench``)."""
+"""Run every benchmark script in this folder, one after another, then ``evseg evaluate labelled`` on the
+synthetic probe scenes of ``../shared/data/synthetic_probe`` (``make bench``)."""
 
 import subprocess
 import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+PROBE = HERE.parents[1] / "shared" / "data" / "synthetic_probe"
+
+
+def probe_scenes() -> int:
+    """Score the default config on the probe scenes; 0 when they are absent."""
+    scenes = sorted(PROBE.glob("*.npz"))
+    if not scenes:
+        print(f"skipped: no probe scenes in {PROBE}")
+        return 0
+    command = ["evaluate", "labelled", *map(str, scenes)]
+    return subprocess.run([sys.executable, "-m", "evseg_torch.cli", "--quiet", *command]).returncode
+
 
 if __name__ == "__main__":
     failed = []
@@ -12,4 +25,7 @@ if __name__ == "__main__":
         print(f"\n=== {script.name}", flush=True)
         if subprocess.run([sys.executable, str(script)]).returncode != 0:
             failed.append(script.name)
+    print("\n=== evseg evaluate labelled (synthetic probe scenes)", flush=True)
+    if probe_scenes() != 0:
+        failed.append("evaluate labelled")
     sys.exit(f"failed: {', '.join(failed)}" if failed else 0)

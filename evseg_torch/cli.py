@@ -88,8 +88,9 @@ def _parser() -> argparse.ArgumentParser:
     simulate = commands.add_parser(
         "simulate",
         help="write synthetic scenes with ground truth",
-        description="Write synthetic event scenes as .npz files "
-        "(events t_us/x/y/p, labels, motions, sensor size).",
+        description="Write synthetic event scenes as .npz files (events t_us/x/y/p, per-event labels as "
+        "`labels` and `label`, `ambiguous` flags, motions, sensor size): the layout of "
+        "../shared/data/synthetic_probe, which `evseg evaluate labelled` scores.",
     )
     simulate.add_argument("--out", required=True, type=Path, help="output folder")
     simulate.add_argument("--seeds", type=_seed_range, default=[0], help="seeds, e.g. 0-9 or 3")
@@ -99,6 +100,10 @@ def _parser() -> argparse.ArgumentParser:
     simulate.add_argument("--duration-ms", type=float, default=30.0, help="scene length (default 30 ms)")
     simulate.add_argument("--objects", type=int, default=2, help="number of moving objects (default 2)")
     simulate.add_argument("--motion-model", default="affine4", help="translation, affine4 or rotation3d")
+    simulate.add_argument(
+        "--family",
+        help="a named scene family instead (hard: known failure modes); ignores --objects and --motion-model",
+    )
     simulate.set_defaults(run=_simulate)
 
     evaluate = commands.add_parser(
@@ -110,7 +115,12 @@ def _parser() -> argparse.ArgumentParser:
         help="accuracy, IoU and detection on synthetic scenes",
         description="Synthetic benchmark.",
     )
-    synthetic.add_argument("--seeds", type=_seed_range, default=list(range(20)), help="seeds (default 0-19)")
+    synthetic.add_argument(
+        "--family",
+        help="score a named scene family instead of the default scenes: hard (similar motions, rotating and "
+        "scaling objects, small fast objects in sparse windows, weak textures), scored as the probe scenes",
+    )
+    synthetic.add_argument("--seeds", type=_seed_range, help="seeds (default 0-19, and 0-59 for a family)")
     synthetic.add_argument("--config", type=Path, help="YAML config")
     synthetic.add_argument(
         "--pipeline-seeds",
@@ -164,6 +174,27 @@ def _parser() -> argparse.ArgumentParser:
     evimo.add_argument("--window-ms", type=float, help="window length (default from the config)")
     evimo.add_argument("--json", type=Path, help="also write the results as JSON")
     evimo.set_defaults(run=_evaluate_evimo)
+    labelled = protocols.add_parser(
+        "labelled",
+        help="accuracy, IoU and detection on files with per-event labels",
+        description="Segment each labelled .npz FILE as one window and score it against its per-event "
+        "labels (0 background, 1..K moving objects, -1 noise), e.g. ../shared/data/synthetic_probe/*.npz. "
+        "Noise and ignored events are left out of every metric.",
+    )
+    labelled.add_argument("files", nargs="+", type=Path, metavar="FILE", help="labelled .npz event files")
+    labelled.add_argument("--label-field", default="label", help="per-event label array (default: label)")
+    labelled.add_argument(
+        "--ignore-field",
+        default="ambiguous",
+        help="per-event mask of events to leave out (default: ambiguous); a file without the field ignores "
+        "none, so e.g. `--ignore-field none` scores every event but noise",
+    )
+    labelled.add_argument("--config", type=Path, help="YAML config")
+    labelled.add_argument(
+        "--sensor-size", type=_sensor_size, help="HxW (default: the file's sensor_size, height and width)"
+    )
+    labelled.add_argument("--json", type=Path, help="also write the results as JSON")
+    labelled.set_defaults(run=_evaluate_labelled)
     return parser
 
 
@@ -320,16 +351,20 @@ def _demo(args) -> int:
 
 def _simulate(args) -> int:
     from evseg_torch.synthetic import make_scene
+    from evseg_torch.synthetic_families import make_family_scene
 
     args.out.mkdir(parents=True, exist_ok=True)
     for seed in args.seeds:
-        scene = make_scene(
-            sensor_size=args.sensor_size,
-            duration=args.duration_ms / 1000,
-            n_objects=args.objects,
-            motion_model=args.motion_model,
-            rng=seed,
-        )
+        if args.family:
+            scene = make_family_scene(args.family, seed, args.sensor_size, args.duration_ms / 1000)
+        else:
+            scene = make_scene(
+                sensor_size=args.sensor_size,
+                duration=args.duration_ms / 1000,
+                n_objects=args.objects,
+                motion_model=args.motion_model,
+                rng=seed,
+            )
         path = args.out / f"scene_{seed:04d}.npz"
         np.savez_compressed(
             path,
@@ -338,8 +373,11 @@ def _simulate(args) -> int:
             y=scene.events["y"],
             p=scene.events["p"],
             labels=scene.labels,
+            label=scene.labels,
+            ambiguous=scene.ambiguous,
             height=scene.sensor_size[0],
             width=scene.sensor_size[1],
+            sensor_size=np.array(scene.sensor_size, dtype=np.int32),
             motion_models=np.array([m.model.name for m in scene.motions]),
             motion_params=np.array([np.pad(m.params, (0, 4 - len(m.params))) for m in scene.motions]),
         )
@@ -353,28 +391,33 @@ def _evaluate_synthetic(args) -> int:
     from evseg_torch.pipeline import CascadedSegmenter
 
     config = load_config(args.config) if args.config else SegmenterConfig()
+    seeds = args.seeds or list(range(60 if args.family else 20))
     runs = {}
     for pipeline_seed in args.pipeline_seeds or [config.seed]:
         segmenter = CascadedSegmenter((180, 240), replace_config(config, seed=pipeline_seed))
-        runs[pipeline_seed] = evaluate_synthetic(segmenter, args.seeds, progress=not args.quiet)
+        runs[pipeline_seed] = evaluate_synthetic(
+            segmenter, seeds, family=args.family, progress=not args.quiet
+        )
+    kinds = "  kinds" if args.family else ""
     print(
         f"{'run':>3} {'seed':>4} {'IMOs':>4} {'events':>7} {'accuracy':>8} {'IoU':>6} {'detect':>6} "
-        f"{'count':>5} {'ms':>7}"
+        f"{'count':>5} {'ms':>7}{kinds}"
     )
     for pipeline_seed, scores in runs.items():
         for s in scores:
             print(
                 f"{pipeline_seed:>3} {s.seed:>4} {s.n_objects:>4} {s.n_events:>7} {s.accuracy:>8.3f} "
                 f"{s.iou:>6.3f} {s.detection:>6.2f} {s.count_error:>+5d} {s.time_ms:>7.0f}"
+                + (f"  {s.kinds}" if kinds else "")
             )
     scores = [score for run in runs.values() for score in run]
     summary = summarize(scores)
-    print(
-        f"mean: accuracy {summary['accuracy']:.3f}, IMO IoU {summary['iou']:.3f}, "
-        f"detection {summary['detection']:.3f}, "
-        f"cluster-count error {summary['count_error']:+.2f} (|.| {summary['abs_count_error']:.2f}), "
-        f"median {summary['time_ms_median']:.0f} ms per window"
-    )
+    for row, suffix in (("mean", ""), ("p10", "_p10")):
+        print(
+            f"{row:>8} {'':>4} {'':>7} {summary['accuracy' + suffix]:>8.3f} {summary['iou' + suffix]:>6.3f} "
+            f"{summary['detection' + suffix]:>6.2f}"
+        )
+    print(_summary_line(summary))
     _write_json(
         args.json,
         {
@@ -387,8 +430,7 @@ def _evaluate_synthetic(args) -> int:
 
 def _evaluate_eed(args) -> int:
     from evseg_torch.config import load_config
-    from evseg_torch.evaluation.eed import PAPER_TABLE_I, detection_rate, evaluate_boxes, load_eed_sequence
-    from evseg_torch.pipeline import CascadedSegmenter
+    from evseg_torch.evaluation.eed import PAPER_TABLE_I, detection_rate, evaluate_sequence, load_eed_sequence
     from evseg_torch.viz import boxes_figure, render_labels, save_figure
 
     config = load_config(args.config or _bundled_config("eed.yaml"))
@@ -398,7 +440,6 @@ def _evaluate_eed(args) -> int:
     rows = {}
     for folder in args.folders:
         sequence = load_eed_sequence(folder)
-        segmenter = CascadedSegmenter(sequence.sensor_size, config)
         panels = []
 
         def draw(result, segmentation, panels=panels):
@@ -413,13 +454,10 @@ def _evaluate_eed(args) -> int:
                 }
             )
 
-        results = evaluate_boxes(
-            segmenter,
-            sequence.events,
-            sequence.box_times_s,
-            sequence.boxes,
+        results = evaluate_sequence(
+            sequence,
+            config,
             window_ms=window_ms,
-            min_events=config.window.min_events,
             reference=reference,
             progress=not args.quiet,
             on_window=draw if args.figures else None,
@@ -435,10 +473,11 @@ def _evaluate_eed(args) -> int:
             save_figure(boxes_figure(panels, title), args.figures / f"{sequence.name}.png")
     print(
         f"EED detection rate (%), IoU > 0.5 (I/GT, I/pred: intersection over the GT or the predicted box's "
-        f"area > 0.5), windows of {window_ms:g} ms centred on each box, clusters compensated to {compensated}"
+        f"area > 0.5; nested: over the smaller box's area > 0.5 with the areas within 4x), windows of "
+        f"{window_ms:g} ms centred on each box, clusters compensated to {compensated}"
     )
     print(
-        f"{'sequence':<20} {'boxes':>5} {'ours':>7} {'I/GT':>7} {'I/pred':>7} {'IoU':>5} | "
+        f"{'sequence':<20} {'boxes':>5} {'ours':>7} {'I/GT':>7} {'I/pred':>7} {'nested':>7} {'IoU':>5} | "
         f"{'EED':>6} {'EMSMC':>6} {'EMSGC':>6} {'IROS21':>6}"
     )
     for name, row in rows.items():
@@ -447,6 +486,7 @@ def _evaluate_eed(args) -> int:
             f"{name:<20} {row['evaluable']:>5} {row['detection_rate']:>7.2f} "
             f"{row.get('detection_rate_overlap', 0):>7.2f} "
             f"{row.get('detection_rate_over_predicted', 0):>7.2f} "
+            f"{row.get('detection_rate_nested', 0):>7.2f} "
             f"{row.get('mean_iou', 0):>5.2f} | "
             + " ".join(f"{paper.get(k, float('nan')):>6.2f}" for k in ("EED", "EMSMC", "EMSGC", "IROS 2021"))
         )
@@ -471,6 +511,51 @@ def _evaluate_evimo(args) -> int:
         print(f"{key:<28} {value}")
     _write_json(args.json, summary)
     return 0
+
+
+def _evaluate_labelled(args) -> int:
+    from evseg_torch.config import SegmenterConfig, load_config
+    from evseg_torch.evaluation.labelled import evaluate_labelled
+    from evseg_torch.evaluation.synthetic import summarize
+
+    config = load_config(args.config) if args.config else SegmenterConfig()
+    scores = evaluate_labelled(
+        args.files,
+        config,
+        sensor_size=args.sensor_size,
+        label_field=args.label_field,
+        ignore_field=args.ignore_field,
+        progress=not args.quiet,
+    )
+    print(
+        f"{'file':<20} {'events':>7} {'IMOs':>4} {'accuracy':>8} {'IoU':>6} {'detect':>6} {'count':>5} "
+        f"{'ms':>7}"
+    )
+    for s in scores:
+        print(
+            f"{s.name:<20} {s.n_events:>7} {s.n_objects:>4} {s.accuracy:>8.3f} {s.iou:>6.3f} "
+            f"{s.detection:>6.2f} {s.count_error:>+5d} {s.time_ms:>7.0f}"
+        )
+    summary = summarize(scores)
+    print(
+        f"{'mean':<20} {np.mean([s.n_events for s in scores]):>7.0f} "
+        f"{np.mean([s.n_objects for s in scores]):>4.1f} {summary['accuracy']:>8.3f} {summary['iou']:>6.3f} "
+        f"{summary['detection']:>6.2f} {summary['count_error']:>+5.2f} "
+        f"{np.mean([s.time_ms for s in scores]):>7.0f}"
+    )
+    print(_summary_line(summary))
+    _write_json(args.json, {"summary": summary, "files": [vars(s) for s in scores]})
+    return 0
+
+
+def _summary_line(summary: dict) -> str:
+    """The ``mean:`` line of a scene benchmark, from :func:`~evseg_torch.evaluation.synthetic.summarize`."""
+    return (
+        f"mean: accuracy {summary['accuracy']:.3f}, IMO IoU {summary['iou']:.3f}, "
+        f"detection {summary['detection']:.3f}, "
+        f"cluster-count error {summary['count_error']:+.2f} (|.| {summary['abs_count_error']:.2f}), "
+        f"median {summary['time_ms_median']:.0f} ms per window"
+    )
 
 
 def _bundled_config(name: str) -> Path:

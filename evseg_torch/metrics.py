@@ -12,6 +12,9 @@ Definitions (reference §3):
   convex hull of its motion-compensated events; IoU of the union of object masks against the
   ground-truth mask.
 * **Box IoU**: intersection over union of ``[x, y, w, h]`` boxes (EED's detection criterion: IoU > 0.5).
+* **Nested boxes**: the intersection covers more than half of the smaller box and the larger box's area
+  is at most 4 times the smaller's (a compensated object inside the larger GT box drawn around its
+  motion-blurred image counts; a box swallowing half the image does not).
 """
 
 from __future__ import annotations
@@ -110,6 +113,26 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         iou = np.where(union > 0, inter / union, 0.0)
     return np.nan_to_num(iou, nan=0.0)
+
+
+def boxes_nested(
+    a: np.ndarray, b: np.ndarray, min_cover: float = 0.5, max_area_ratio: float = 4.0
+) -> np.ndarray:
+    """Whether ``[x, y, w, h]`` boxes nest, broadcasting over leading dimensions.
+
+    Args:
+        a, b: boxes :math:`(..., 4)`.
+        min_cover: the intersection must cover more than this fraction of the smaller box's area.
+        max_area_ratio: the larger area may be at most this multiple of the smaller.
+
+    Returns:
+        Bool :math:`(...)`; ``False`` where a box is empty or NaN.
+    """
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    area_a, area_b = a[..., 2] * a[..., 3], b[..., 2] * b[..., 3]
+    smaller, larger = np.minimum(area_a, area_b), np.maximum(area_a, area_b)
+    covered = box_intersection(a, b) > min_cover * smaller
+    return (smaller > 0) & covered & (larger <= max_area_ratio * smaller)
 
 
 def convex_hull_mask(xy: np.ndarray, sensor_size: tuple[int, int]) -> np.ndarray:

@@ -6,6 +6,7 @@ from evseg_torch.metrics import (
     box_intersection,
     box_iou,
     box_of_points,
+    boxes_nested,
     convex_hull_mask,
     labelling_accuracy,
     mask_iou,
@@ -57,6 +58,31 @@ class TestBoxes:
     def test_broadcasting(self):
         boxes = np.array([[0.0, 0, 10, 10], [0, 0, 5, 10]])
         np.testing.assert_allclose(box_iou(boxes, np.array([0.0, 0, 10, 10])), [1.0, 0.5])
+
+    def test_nested_hand_computed(self):
+        gt = np.array([0.0, 0, 10, 10])
+        # 6 x 6 inside: intersection 36 covers all of the smaller box, areas 100 / 36 = 2.8 <= 4.
+        assert boxes_nested(np.array([2.0, 2, 6, 6]), gt)
+        assert boxes_nested(gt, np.array([2.0, 2, 6, 6]))  # symmetric
+        # 4 x 4 inside: covered, but 100 / 16 = 6.25 > 4.
+        assert not boxes_nested(np.array([2.0, 2, 4, 4]), gt)
+        # 5 x 5 across the corner, 2 x 2 inside: 4 / 25 of the smaller box.
+        assert not boxes_nested(np.array([8.0, 8, 5, 5]), gt)
+        # 10 x 5 at half height: IoU 0.25 yet covers 30 / 50 of the smaller box, areas 2x.
+        shifted = np.array([0.0, 2, 10, 5])
+        assert box_iou(shifted, np.array([0.0, 4, 10, 10])) < 0.5
+        assert boxes_nested(shifted, np.array([0.0, 4, 10, 10]))
+
+    def test_nested_limits_and_empty_boxes(self):
+        gt = np.array([0.0, 0, 10, 10])
+        half = np.array([0.0, 0, 5, 10])  # covers all of itself; areas exactly 2x
+        assert boxes_nested(half, gt) and not boxes_nested(half, gt, max_area_ratio=1.9)
+        assert not boxes_nested(np.array([5.0, 0, 5, 10]), np.array([0.0, 0, 10, 10]), min_cover=1.0)
+        assert not boxes_nested(np.array([0.0, 0, 0, 10]), np.array([0.0, 0, 0, 10]))
+        assert not boxes_nested(np.full(4, np.nan), gt)
+        np.testing.assert_array_equal(
+            boxes_nested(np.array([[2.0, 2, 6, 6], [2, 2, 4, 4]]), gt), [True, False]
+        )
 
     def test_box_of_points(self):
         np.testing.assert_allclose(box_of_points(np.array([[1.0, 2], [4, 8], [2, 3]])), [1, 2, 3, 6])

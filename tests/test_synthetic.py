@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 from scipy.ndimage import binary_dilation
@@ -35,6 +36,7 @@ def test_types_and_shapes():
     n = len(scene.events)
     assert scene.events.dtype == EVENT_DTYPE
     assert scene.labels.dtype == np.int64 and scene.labels.shape == (n,)
+    assert scene.ambiguous.dtype == bool and scene.ambiguous.shape == (n,)
     assert scene.sensor_size == (90, 120) and scene.duration == 0.02 and scene.n_objects == 2
     assert len(scene.motions) == 3 and all(isinstance(m, LayerMotion) for m in scene.motions)
     for motion in scene.motions:
@@ -140,6 +142,17 @@ def test_masks_and_boxes():
                 ex, ey = scene.events["x"][near], scene.events["y"][near]
                 inside = (ex >= x - 1) & (ex <= x + w + 1) & (ey >= y - 1) & (ey <= y + h + 1)
                 assert inside.mean() >= 0.9
+
+
+def test_given_object_shapes_are_where_the_objects_are_at_mid_scene():
+    square = np.array([[20.0, 20.0], [50.0, 20.0], [50.0, 50.0], [20.0, 50.0]])
+    triangle = np.array([[70.0, 30.0], [100.0, 70.0], [60.0, 70.0]])
+    scene = small_scene(object_shapes=[square, triangle])
+    for mask, polygon in zip(scene.masks_at(0.01), [square, triangle], strict=True):
+        drawn = np.zeros((90, 120), dtype=np.uint8)
+        cv2.fillPoly(drawn, [np.rint(polygon).astype(np.int32)], 1)
+        union = mask | (drawn > 0)
+        assert (mask & (drawn > 0)).sum() / union.sum() > 0.85
 
 
 def test_an_object_that_left_the_sensor_has_no_box():
@@ -248,6 +261,13 @@ def test_long_scenes_keep_objects_in_view():
         {"min_relative_speed": -5.0},
         {"t0_us": -1},
         {"t0_us": 1.5},
+        {"object_shapes": [np.zeros((4, 2))]},
+        {"object_shapes": [np.zeros((2, 2)), np.zeros((4, 2))]},
+        {"object_shapes": [np.zeros((4, 3)), np.zeros((4, 2))]},
+        {"object_texture_contrast": 1.5},
+        {"object_texture_contrast": -0.1},
+        {"background_density": 0.0},
+        {"ambiguity_window": 0.0},
     ],
 )
 def test_invalid_arguments_raise_config_error(kwargs):

@@ -3,13 +3,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.errors import ConfigError, ReaderError
+from evseg_torch.evaluation import eed
 from evseg_torch.evaluation.eed import (
     EED_SENSOR_SIZE,
     BoxResult,
+    EedSequence,
     cluster_boxes,
     detection_rate,
     evaluate_boxes,
+    evaluate_sequence,
     load_eed_sequence,
 )
 from evseg_torch.events import EVENT_DTYPE
@@ -35,9 +39,9 @@ def _events(n, t0_us=0, step_us=10, size=(30, 40), seed=0):
     return events
 
 
-def _result(iou, evaluable=True, over_gt=0.0, over_predicted=0.0):
-    box = np.array([0.0, 0.0, 1.0, 1.0])
-    return BoxResult(0.0, box, evaluable, 10, box, iou, over_gt, 2, over_predicted)
+def _result(iou, evaluable=True, over_gt=0.0, over_predicted=0.0, predicted=(0.0, 0.0, 1.0, 1.0)):
+    gt = np.array([0.0, 0.0, 1.0, 1.0])
+    return BoxResult(0.0, gt, evaluable, 10, np.array(predicted), iou, over_gt, 2, over_predicted)
 
 
 class TestClusterBoxes:
@@ -76,16 +80,18 @@ class TestDetectionRate:
     def test_counts_only_evaluable_boxes(self):
         results = [
             _result(0.9, over_gt=0.95, over_predicted=0.95),
-            _result(0.5, over_gt=0.8, over_predicted=0.6),
-            _result(0.2, over_predicted=1.0),
+            _result(0.5, over_gt=0.8, over_predicted=0.6, predicted=(0.0, 0.0, 3.0, 3.0)),  # 9x the GT
+            _result(0.2, over_predicted=1.0, predicted=(0.0, 0.0, 0.5, 1.0)),  # half the GT, inside
             _result(1.0, False, over_predicted=1.0),
         ]
         assert [r.detected for r in results] == [True, False, False, False]
+        assert [r.detected_nested for r in results] == [True, False, True, False]
         rate = detection_rate(results)
         assert rate["boxes"] == 4 and rate["evaluable"] == 3 and rate["detected"] == 1
         assert rate["detection_rate"] == pytest.approx(100 / 3)
         assert rate["detection_rate_overlap"] == pytest.approx(200 / 3)
         assert rate["detection_rate_over_predicted"] == pytest.approx(100.0)
+        assert rate["detection_rate_nested"] == pytest.approx(200 / 3)
         assert rate["mean_iou"] == pytest.approx((0.9 + 0.5 + 0.2) / 3)
 
     def test_nothing_evaluable(self):
@@ -124,7 +130,9 @@ class TestEvaluateBoxes:
         assert first.intersection_over_gt == 1.0 and first.intersection_over_predicted == 1.0
         assert first.n_clusters == 2
         np.testing.assert_array_equal(first.predicted_box, gt[0])
+        assert first.detected_nested
         assert not second.evaluable and second.n_events == 250 and not second.detected
+        assert not second.detected_nested
 
     def test_overlap_readings_of_a_box_inside_the_gt_box(self):
         def small_object(window, t_ref):
@@ -140,6 +148,21 @@ class TestEvaluateBoxes:
         np.testing.assert_array_equal(result.predicted_box, [12.0, 11.0, 4.0, 4.0])
         assert result.iou == pytest.approx(0.16) and result.intersection_over_gt == pytest.approx(0.16)
         assert result.intersection_over_predicted == 1.0 and not result.detected
+        assert not result.detected_nested  # the GT box is 6.25 times the object's
+
+    def test_nested_reading_of_a_box_inside_a_blurred_gt_box(self):
+        def object_6x6(window, t_ref):
+            xy = np.concatenate(
+                [np.repeat([[12.0, 11.0], [18.0, 17.0]], 3, axis=0), np.zeros((len(window) - 6, 2))]
+            )
+            return _segmentation(xy, np.r_[np.ones(6), np.zeros(len(window) - 6)])
+
+        gt = np.array([[10.0, 10.0, 10.0, 10.0]])
+        (result,) = evaluate_boxes(
+            object_6x6, _events(100), np.array([0.0005]), gt, window_ms=1, min_events=10
+        )
+        assert result.iou == pytest.approx(0.36) and not result.detected
+        assert result.detected_nested
 
     def test_window_start_reference(self):
         events = _events(2000)
@@ -171,6 +194,28 @@ class TestEvaluateBoxes:
         )
         assert result.evaluable and result.iou == 0.0 and result.intersection_over_gt == 0.0
         assert np.isnan(result.predicted_box).all()
+
+
+def test_evaluate_sequence_windows_from_the_config(monkeypatch):
+    built, seen = [], []
+
+    class Stub:
+        def __init__(self, sensor_size, config):
+            built.append((sensor_size, config))
+
+        def __call__(self, window, t_ref):
+            seen.append((len(window), t_ref))
+            return _segmentation(np.zeros((len(window), 2)), np.zeros(len(window)))
+
+    monkeypatch.setattr(eed, "CascadedSegmenter", Stub)
+    sequence = EedSequence("s", _events(2000), np.array([0.01, 0.0195]), np.ones((2, 4)), (30, 40))
+    config = replace_config(SegmenterConfig(), window_ms=4.0, min_events=300)
+    results = evaluate_sequence(sequence, config)
+    assert built == [((30, 40), config)]
+    # 4 ms windows: 400 events around 10 ms, 250 before the end at 19.99 ms (fewer than 300).
+    assert seen == [(400, 0.01)] and [r.evaluable for r in results] == [True, False]
+    evaluate_sequence(sequence, config, window_ms=6.0, reference="window_start")
+    assert seen[1:] == [(600, pytest.approx(0.007)), (350, pytest.approx(0.0165))]
 
 
 class TestLoadSequence:

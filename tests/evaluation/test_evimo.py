@@ -145,8 +145,7 @@ class TestProtocol:
         for result, t in zip(results, times, strict=True):
             assert isinstance(result, FrameResult) and result.t_s == t and result.evaluated
             assert result.n_clusters >= 1 and result.n_events > 1000
-            assert 0.0 <= result.convex_hull_iou <= 1.0
-            assert 0.0 <= result.event_wise_iou <= 1.0
+            assert result.convex_hull_iou > 0.5 and result.event_wise_iou > 0.5  # >= 0.66 measured
         summary = summarize_evimo(results)
         assert summary["evaluated"] == 2
         assert summary["convex_hull_iou"] > 0.3 and summary["event_wise_iou"] > 0.3
