@@ -9,11 +9,21 @@ model of :mod:`evseg_torch.motion`, as in the paper's Sec. IV-A and Algorithm 1:
   (a small object's 10-30 tracks among 300 would otherwise need thousands of samples);
 * **truncated MSAC quality** with the truncated threshold ``1.5 * threshold`` (pitfall 9): a point with
   squared residual ``r2 < (1.5 tau)^2`` contributes its *preference* ``1 - r2 / (1.5 tau)^2``;
-* the **compound-model-aware quality** used inside Progressive-X: ``Q = S - (sum_i min(pref_i(C),
-  pref_i(h))) ** scoring_exponent``, so a proposal scores only the data that the instances found so
-  far (the compound model ``C``) do not explain. This is Progressive-X's code; the paper's Eq. 4
-  states the same idea per point, ``sum_i min(pref_i(h), 1 - pref_i(C))``, while the power here
-  rejects overlapping proposals harder;
+* the **compound-model-aware quality** used inside Progressive-X, so that a proposal scores only the
+  data that the instances found so far (the compound model ``C``, ``pref_i(C) = max_j pref_i(j)``) do
+  not explain. Two forms, chosen by ``quality``:
+
+  - ``"progressive_x"`` (the default): Progressive-X's code, ``Q = S - (sum_i min(pref_i(C),
+    pref_i(h))) ** scoring_exponent`` with ``S = sum_i pref_i(h)`` the MSAC score; with exponent 1
+    that is ``sum_i max(0, pref_i(h) - pref_i(C))``. It is *not* the paper's Eq. 4;
+  - ``"paper"``: the paper's Eq. 4, ``Q = |F| - sum_i min(1, max(e_i(h)^2 / gamma^2, 1 - e_i(C)^2 /
+    gamma^2))`` with ``gamma = 1.5 tau`` and ``e_i(C)`` the smallest error under the instances. Since
+    ``1 - min(1, max(a, b)) = max(0, min(1 - a, 1 - b))`` and ``e_i(C)^2 / gamma^2 >= 0``, every
+    point contributes ``min(pref_i(h), 1 - pref_i(C))``: ``Q = sum_i min(pref_i(h), 1 - pref_i(C))``
+    (``scoring_exponent`` plays no part). A point that both ``h`` and ``C`` fit half-way still counts
+    half here, where Progressive-X's form counts it 0;
+
+  without a compound model both forms are the MSAC score ``S``;
 * the adaptive iteration count ``K = log(1 - conf) / log(1 - eta^m)``, clipped to ``[min_iters,
   max_iters]``, ``eta`` the best model's inlier ratio;
 * **local optimisation** whenever a new best model appears: graph-cut inlier/outlier labelling (one
@@ -38,7 +48,10 @@ from evseg_torch.graphcut.alpha_expansion import PottsGraph, potts_graph
 from evseg_torch.level_one.neighborhood import adjacency, neighborhood_graph
 from evseg_torch.motion.base import MotionModel
 
-__all__ = ["gc_ransac", "graph_cut_inliers", "iteration_bound", "preference"]
+__all__ = ["QUALITIES", "gc_ransac", "graph_cut_inliers", "iteration_bound", "preference"]
+
+#: Forms of the compound-model-aware quality: Progressive-X's code (the default) and the paper's Eq. 4.
+QUALITIES = ("progressive_x", "paper")
 
 #: Hypotheses generated and scored per vectorised step.
 BATCH_SIZE = 128
@@ -244,17 +257,23 @@ class Correspondences:
 
 @dataclass(frozen=True)
 class _Scoring:
-    """Quality of hypotheses: truncated MSAC, minus the support shared with the compound model."""
+    """Quality of hypotheses from their preferences: truncated MSAC, aware of the compound model.
+
+    ``quality`` ``"progressive_x"``: the MSAC score minus the support shared with the compound model
+    to the power ``exponent``; ``"paper"``: Eq. 4, ``sum_i min(pref_i, 1 - compound_i)``.
+    """
 
     threshold: float
     compound: np.ndarray | None
     exponent: float
+    quality: str = "progressive_x"
 
     def __call__(self, pref: np.ndarray) -> np.ndarray:
-        score = pref.sum(axis=-1)
-        if self.compound is not None:
-            score = score - np.minimum(pref, self.compound).sum(axis=-1) ** self.exponent
-        return score
+        if self.compound is None:
+            return pref.sum(axis=-1)
+        if self.quality == "paper":
+            return np.minimum(pref, 1.0 - self.compound).sum(axis=-1)
+        return pref.sum(axis=-1) - np.minimum(pref, self.compound).sum(axis=-1) ** self.exponent
 
 
 def _local_optimisation(
@@ -320,13 +339,14 @@ def run_gc_ransac(
     compound_preference: np.ndarray | None,
     scoring_exponent: float,
     rng: np.random.Generator,
+    quality: str = "progressive_x",
 ):
     """:func:`gc_ransac` on validated :class:`Correspondences` (Progressive-X calls it repeatedly)."""
     m = data.model.min_samples
     n_points = data.n_points
     if n_points < m:
         return None, np.zeros(n_points, dtype=bool), 0
-    scoring = _Scoring(threshold, compound_preference, scoring_exponent)
+    scoring = _Scoring(threshold, compound_preference, scoring_exponent, quality)
     # Samples are drawn mostly where the compound model leaves data unexplained: a sample there is the
     # one that can propose an unseen motion (the floor keeps every point drawable).
     weights = None if compound_preference is None else np.maximum(1.0 - compound_preference, SAMPLING_FLOOR)
@@ -364,7 +384,14 @@ def run_gc_ransac(
 
 
 def check_fitting_parameters(
-    *, threshold, conf, spatial_coherence_weight, max_iters, min_iters=0, scoring_exponent=1
+    *,
+    threshold,
+    conf,
+    spatial_coherence_weight,
+    max_iters,
+    min_iters=0,
+    scoring_exponent=1,
+    quality="progressive_x",
 ) -> None:
     """Raise :class:`ConfigError` naming the first out-of-range robust-fitting parameter."""
     if not threshold > 0:
@@ -377,6 +404,13 @@ def check_fitting_parameters(
         raise ConfigError(f"need 0 <= min_iters <= max_iters, 1 <= max_iters; got {min_iters}, {max_iters}")
     if not scoring_exponent > 0:
         raise ConfigError(f"scoring_exponent must be positive, got {scoring_exponent}")
+    check_quality(quality)
+
+
+def check_quality(quality) -> None:
+    """Raise :class:`ConfigError` unless ``quality`` is one of :data:`QUALITIES`."""
+    if quality not in QUALITIES:
+        raise ConfigError(f"quality must be one of {', '.join(map(repr, QUALITIES))}, got {quality!r}")
 
 
 def gc_ransac(
@@ -394,6 +428,7 @@ def gc_ransac(
     min_iters: int = 20,
     compound_preference=None,
     scoring_exponent: float = 1,
+    quality: str = "progressive_x",
     rng=None,
 ):
     """Robustly fit one motion model to feature correspondences with GC-RANSAC.
@@ -418,7 +453,11 @@ def gc_ransac(
             :data:`BATCH_SIZE`, so at least ``min(BATCH_SIZE, max_iters)`` are drawn anyway).
         compound_preference: Progressive-X's compound preference vector :math:`(N,)` in ``[0, 1]``;
             ``None`` for plain single-model fitting.
-        scoring_exponent: power of the support shared with the compound model in the quality.
+        scoring_exponent: power of the support shared with the compound model in the
+            ``"progressive_x"`` quality (unused by ``"paper"``).
+        quality: form of the compound-model-aware quality (module docstring): ``"progressive_x"``,
+            Progressive-X's code, or ``"paper"``, the paper's Eq. 4. Without ``compound_preference``
+            both are the MSAC score.
         rng: :class:`numpy.random.Generator` or seed.
 
     Returns:
@@ -444,7 +483,11 @@ def gc_ransac(
     """
     settings = {"threshold": threshold, "conf": conf, "spatial_coherence_weight": spatial_coherence_weight}
     check_fitting_parameters(
-        **settings, max_iters=max_iters, min_iters=min_iters, scoring_exponent=scoring_exponent
+        **settings,
+        max_iters=max_iters,
+        min_iters=min_iters,
+        scoring_exponent=scoring_exponent,
+        quality=quality,
     )
     data = Correspondences.build(
         src, dst, dt, model, neighborhood_ball_radius=neighborhood_ball_radius, neighbors=neighbors
@@ -463,4 +506,5 @@ def gc_ransac(
         compound_preference=compound_preference,
         scoring_exponent=scoring_exponent,
         rng=np.random.default_rng(rng),
+        quality=quality,
     )
