@@ -133,6 +133,14 @@ class CascadedSegmenter(nn.Module):
             label_tol=two.label_tol,
             warm_max_iter=two.warm_max_iter,
             site_time_slices=two.site_time_slices,
+            label_cost_events=two.label_cost_events,
+            discovery_rounds=two.discovery_rounds,
+            discovery_min_events=two.discovery_min_events,
+            discovery_residual_cost=two.discovery_residual_cost,
+            discovery_radius=two.discovery_radius,
+            discovery_max_proposals=two.discovery_max_proposals,
+            discovery_min_gain=two.discovery_min_gain,
+            discovery_max_iter=two.discovery_max_iter,
         )
         # Follows .to(device) and .double(), so level two runs where the caller put the module.
         self.register_buffer("_anchor", torch.zeros(0), persistent=False)
@@ -283,6 +291,7 @@ class CascadedSegmenter(nn.Module):
             minimum_point_number=one.minimum_point_number,
             maximum_model_number=one.maximum_model_number,
             scoring_exponent=one.scoring_exponent,
+            quality=one.quality,
             initial_models=initial_models,
             # Seeded afresh for every window: a window's labels never depend on the calls before it.
             rng=np.random.default_rng(cfg.seed),

@@ -43,6 +43,11 @@ DEFAULT_COLLAPSE_WEIGHT = 0.375
 """Default exponent γ of the area-element weights of the event-collapse guard (module docstring)."""
 
 _MIN_AREA = 1e-6  # folded warps (a <= 0) keep a tiny weight and a finite gradient
+# Pixels a fit's crop reaches beyond its events' raw and initially warped positions: room for the
+# warps of a fit to move (refits move models by a pixel or two) and for the blur.
+_CROP_MARGIN = 8.0
+# Clusters whose crops cover at most this fraction of the sensor are fitted in crops (see _crops).
+_SMALL_CROP = 0.25
 
 
 def image_variance(iwe: Tensor, reference: Tensor | None = None) -> Tensor:
@@ -185,6 +190,11 @@ class _LinearWarp(NamedTuple):
 
     def warped(self, params: Tensor) -> Tensor:
         return self.xy - _apply(self.operator, params)
+
+    def rows(self, index: Tensor) -> _LinearWarp:
+        """The warp of some clusters of a gathered :math:`(K, N, 2)` warp: rows ``index``."""
+        steps = (None if step is None else step[:, index] for step in (self.step_x, self.step_y))
+        return _LinearWarp(self.xy[index], self.operator[:, index], *steps)
 
     def area(self, params: Tensor) -> Tensor:
         dx, dy = _apply(self.step_x, params), _apply(self.step_y, params)
@@ -436,21 +446,35 @@ class ContrastMaximization(nn.Module):
         duration = float(events.t.abs().max()) if n_events else 0.0
         if duration == 0.0 or init_params.shape[0] == 0:
             return init_params.detach().clone()
-        if weights is not None:
-            events, weights = _gather_members(events, weights)
         scale = torch.as_tensor(
             self.model.displacement_scale(duration), dtype=init_params.dtype, device=init_params.device
         )
-        with torch.enable_grad():
-            fitted = self._fit(events, init_params.detach() * scale, weights, scale)
+        start = init_params.detach() * scale
+        if weights is None:
+            warp = _LinearWarp.build(self.model, events, with_area=self.collapse_weight > 0)
+            with torch.enable_grad():
+                fitted = self._fit(warp, self.sensor_size, start, None, scale)
+        else:
+            events, weights = gather_members(events, weights)
+            warp = _LinearWarp.build(self.model, events, with_area=self.collapse_weight > 0)
+            fitted = torch.empty_like(start)
+            for rows, shifted, crop in _crops(warp, weights, init_params.detach(), self.sensor_size):
+                with torch.enable_grad():
+                    fitted[rows] = self._fit(shifted, crop, start[rows], weights[rows], scale)
         refined = fitted / scale
         return torch.where(torch.isfinite(refined).all(dim=1, keepdim=True), refined, init_params.detach())
 
-    def _fit(self, events: EventBatch, start: Tensor, weights: Tensor | None, scale: Tensor) -> Tensor:
+    def _fit(
+        self,
+        warp: _LinearWarp,
+        sensor_size: tuple[int, int],
+        start: Tensor,
+        weights: Tensor | None,
+        scale: Tensor,
+    ) -> Tensor:
         reference = None
         if self.objective in _USES_REFERENCE:
-            reference = splat_events(events.xy, self.sensor_size, weights, self.sigma).detach()
-        warp = _LinearWarp.build(self.model, events, with_area=self.collapse_weight > 0)
+            reference = splat_events(warp.xy, sensor_size, weights, self.sigma).detach()
         contrast_fn = CONTRAST_OBJECTIVES[self.objective]
 
         def losses(conditioned: Tensor) -> Tensor:
@@ -458,7 +482,7 @@ class ContrastMaximization(nn.Module):
                 warp,
                 conditioned / scale,
                 weights,
-                self.sensor_size,
+                sensor_size,
                 contrast_fn,
                 self.sigma,
                 self.collapse_weight,
@@ -504,7 +528,46 @@ class ContrastMaximization(nn.Module):
         )
 
 
-def _gather_members(events: EventBatch, weights: Tensor) -> tuple[EventBatch, Tensor]:
+def _crops(
+    warp: _LinearWarp, weights: Tensor, params: Tensor, sensor_size: tuple[int, int]
+) -> list[tuple[Tensor, _LinearWarp, tuple[int, int]]]:
+    """Each cluster's gathered events moved into a crop around them, clusters grouped by crop size.
+
+    A cluster's image only needs the pixels its events reach: its box spans its events' raw and initially
+    warped positions plus :data:`_CROP_MARGIN` pixels. Clusters whose boxes cover at most
+    :data:`_SMALL_CROP` of the sensor are fitted together in crops of their largest box; the others in
+    the whole sensor. Contrast then costs in proportion to the crops' area, not K sensors'. The variance
+    objectives sum the squared image over the pixels the events reach, so the optimum is the same as
+    over the whole sensor while the events stay inside their crop.
+
+    Returns:
+        ``(rows, warp, crop_size)`` per group: the clusters' indices, their warp with positions relative to
+        each cluster's crop, and the crop ``(H, W)``.
+    """
+    height, width = sensor_size
+    limit = torch.tensor([width - 1.0, height - 1.0], dtype=warp.xy.dtype, device=warp.xy.device)
+    with torch.no_grad():
+        member = (weights != 0)[..., None]
+        reach = torch.cat([warp.xy, warp.warped(params)], dim=1)
+        inside = torch.cat([member, member], dim=1)
+        big = torch.finfo(reach.dtype).max
+        low = torch.where(inside, reach, big).amin(dim=1).sub(_CROP_MARGIN).clamp(min=0).floor()
+        high = torch.where(inside, reach, -big).amax(dim=1).add(_CROP_MARGIN).clamp(max=limit).ceil()
+        extent = (high - low).clamp_min(0)
+        small = (extent[:, 0] + 1) * (extent[:, 1] + 1) <= _SMALL_CROP * height * width
+    groups = []
+    for chosen in (small, ~small):
+        rows = chosen.nonzero()[:, 0]
+        if not len(rows):
+            continue
+        span = extent[rows].amax(dim=0) if chosen is small else limit
+        origin = torch.minimum(low[rows], limit - span)
+        shifted = warp.rows(rows)._replace(xy=warp.xy[rows] - origin[:, None, :])
+        groups.append((rows, shifted, (int(span[1]) + 1, int(span[0]) + 1)))
+    return groups
+
+
+def gather_members(events: EventBatch, weights: Tensor) -> tuple[EventBatch, Tensor]:
     """Each cluster's events with non-zero weight, padded to the largest cluster with zero weights.
 
     Warping and splatting then cost one pass over the events in all, not one per cluster.

@@ -15,11 +15,29 @@ block-coordinate descent (EMSGC ``applySegmentation_GMM``), for at most ``n_iter
 1. data costs of every event under every current model;
 2. labelling by α-expansion (``n_iter_labeling`` cycles), starting from the current labels (first round:
    each event's, or site's, cheapest model);
-3. empty models are dropped and the rest renumbered by size, largest first: the pool only shrinks;
+3. empty models are dropped and the rest renumbered by size, largest first;
 4. stop when one cluster remains, when at most a fraction ``label_tol`` of the labels changed, or when
-   the energy equals the previous round's;
+   the energy equals the previous round's; but the first time this happens (``discovery_rounds``
+   times in all), **discovery** proposes new models and the descent goes on with them;
 5. each cluster's model is refitted by contrast maximisation of its own events, warm-started at the
    current parameters.
+
+Discovery (beyond the paper, whose level two only prunes level one's pool, so that a motion level one
+missed or merged with another is never recovered): regions of events that may follow a motion of their
+own (a cluster's spatially separate groups, the halves of a cluster other than the largest, the union of
+two touching clusters; see :mod:`~evseg_torch.level_two.discovery`) each get a model by contrast
+maximisation (``discovery_max_iter`` iterations on at most 1500 of its events, from the sharper of two
+starts); a proposal that compensates its region less sharply than the region's own model, or that
+collapses it (changes its area by more than 10%), is dropped. The rest join the pool, and the next
+labelling, by the same energy and its label cost, decides which are used; unused ones are dropped
+like any empty model. Each window proposes at most ``discovery_max_proposals`` models
+``discovery_rounds`` times, and stops proposing once a round's proposals were all rejected, so split,
+proposal and the label cost's merging cannot oscillate. ``discovery_rounds=0`` is the paper's level two.
+
+The label cost scales with the window (``label_cost_events``): :math:`\lambda_M(N) = \lambda_{label}
+\max(1, N / N_0)`. The data cost that a spurious model saves grows with the events it takes over, so a
+fixed cost lets spurious labels in on dense windows; on sparse windows (below :math:`N_0` events) the
+cost stays ``lambda_label``, so a small object keeps its own label there.
 
 Deviations from EMSGC, each measured on the synthetic scenes of :func:`~evseg_torch.synthetic.make_scene`
 (``benchmarks/bench_level_two.py``; ~30k events, 3–4 models, 2 CPU cores):
@@ -73,13 +91,30 @@ from torch import Tensor, nn
 from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.graphcut.alpha_expansion import alpha_expansion, potts_graph
-from evseg_torch.level_two.contrast import ContrastMaximization, contrast_loss
-from evseg_torch.level_two.data_term import NORMALIZATIONS, DataCost
+from evseg_torch.level_two.contrast import (
+    ContrastMaximization,
+    contrast_loss,
+    gather_members,
+    warp_area_element,
+)
+from evseg_torch.level_two.data_term import MAX_COST, NORMALIZATIONS, DataCost
+from evseg_torch.level_two.discovery import (
+    candidate_regions,
+    centroid_velocity,
+    recentred,
+    translation_params,
+)
 from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.iwe import warped_iwe
 from evseg_torch.motion import MotionModel, make_motion_model
 
 __all__ = ["GraphCutContrastSegmenter", "LevelTwoResult"]
+
+# A proposal only needs to show whether a region has a sharper motion of its own; an even subsample of
+# this many events per region finds it, at a fraction of the cost of fitting whole regions.
+_PROPOSAL_MAX_EVENTS = 1500
+# Largest mean change of its region's area (the warp's area element) a proposal may make.
+_MAX_AREA_CHANGE = 0.1
 
 
 @dataclass(frozen=True)
@@ -128,7 +163,8 @@ class GraphCutContrastSegmenter(nn.Module):
         sensor_size: ``(H, W)``.
         lambda_data: weight :math:`\lambda_D` of the data term (EMSGC: 1).
         lambda_smooth: Potts weight :math:`\lambda_P` per unit edge weight (EMSGC: 25–43).
-        lambda_label: label cost :math:`\lambda_M` per model in use (EMSGC: 8000).
+        lambda_label: label cost :math:`\lambda_M` per model in use (EMSGC: 8000; 4000 on EED occlusions),
+            in windows of up to ``label_cost_events`` events.
         n_iter_segmentation: outer block-coordinate-descent rounds (EMSGC: 5).
         n_iter_labeling: α-expansion cycles per labelling (EMSGC: 2).
         sigma: Gaussian blur of the IWEs in the data term and the refits, pixels (EMSGC: 1).
@@ -148,6 +184,20 @@ class GraphCutContrastSegmenter(nn.Module):
         site_time_slices: label sites, the events of one pixel within one of this many slices of the
             window (see :func:`~evseg_torch.level_two.graph.site_graph`); ``None`` labels every event
             on its own (EMSGC).
+        label_cost_events: windows of more events pay ``lambda_label`` per ``label_cost_events`` events
+            for each label; ``None`` for ``lambda_label`` whatever the window (EMSGC).
+        discovery_rounds: how many times a window proposes new models (module docstring); 0 for the
+            paper's level two, which only prunes.
+        discovery_min_events: fewest events of a region that gets a proposed model.
+        discovery_residual_cost: also propose models for connected events whose own model's data cost
+            is at least this (of 255); ``None`` (default) for none. With the ``"relative"`` data term
+            most background events of a sparse window cost that much, so on the synthetic probe scenes
+            every threshold tried (128–240) lowered detection.
+        discovery_radius: pixels by which events reach out when grouped into regions.
+        discovery_max_proposals: most models proposed at a time (the largest regions).
+        discovery_min_gain: a proposal must raise its region's contrast by at least this fraction over
+            the region's own model.
+        discovery_max_iter: optimiser iterations of each proposal's fit.
 
     Shape:
         - Input: ``events`` with N events (or a list of windows), ``init_params`` :math:`(K, P)`,
@@ -171,7 +221,7 @@ class GraphCutContrastSegmenter(nn.Module):
         *,
         lambda_data: float = 1.0,
         lambda_smooth: float = 30.0,
-        lambda_label: float = 8000.0,
+        lambda_label: float = 4000.0,
         n_iter_segmentation: int = 5,
         n_iter_labeling: int = 1,
         sigma: float = 1.0,
@@ -186,6 +236,14 @@ class GraphCutContrastSegmenter(nn.Module):
         refit_max_events: int | None = 4000,
         label_tol: float = 0.002,
         site_time_slices: int | None = 1,
+        label_cost_events: float | None = 15000.0,
+        discovery_rounds: int = 1,
+        discovery_min_events: int = 100,
+        discovery_residual_cost: float | None = None,
+        discovery_radius: int = 2,
+        discovery_max_proposals: int = 8,
+        discovery_min_gain: float = 0.0,
+        discovery_max_iter: int = 20,
     ) -> None:
         super().__init__()
         self.sensor_size = tuple(int(v) for v in sensor_size)
@@ -223,6 +281,34 @@ class GraphCutContrastSegmenter(nn.Module):
         if warm_max_iter is not None and (int(warm_max_iter) != warm_max_iter or warm_max_iter < 1):
             raise ConfigError(f"warm_max_iter must be a positive integer or None, got {warm_max_iter}")
         self.refit_max_events = None if refit_max_events is None else int(refit_max_events)
+        if label_cost_events is not None and not (np.isfinite(label_cost_events) and label_cost_events > 0):
+            raise ConfigError(
+                f"label_cost_events must be a finite number > 0 or None, got {label_cost_events}"
+            )
+        self.label_cost_events = None if label_cost_events is None else float(label_cost_events)
+        for name, value, low in (
+            ("discovery_rounds", discovery_rounds, 0),
+            ("discovery_min_events", discovery_min_events, 1),
+            ("discovery_radius", discovery_radius, 0),
+            ("discovery_max_proposals", discovery_max_proposals, 1),
+            ("discovery_max_iter", discovery_max_iter, 1),
+        ):
+            if isinstance(value, bool) or int(value) != value or value < low:
+                raise ConfigError(f"{name} must be an integer >= {low}, got {value}")
+        if discovery_residual_cost is not None and not 0 <= discovery_residual_cost <= MAX_COST:
+            raise ConfigError(
+                f"discovery_residual_cost must lie in [0, {MAX_COST}], got {discovery_residual_cost}"
+            )
+        self.discovery_rounds = int(discovery_rounds)
+        self.discovery_min_events = int(discovery_min_events)
+        self.discovery_residual_cost = (
+            None if discovery_residual_cost is None else float(discovery_residual_cost)
+        )
+        self.discovery_radius = int(discovery_radius)
+        self.discovery_max_proposals = int(discovery_max_proposals)
+        if not (np.isfinite(discovery_min_gain) and discovery_min_gain >= 0):
+            raise ConfigError(f"discovery_min_gain must be a finite number >= 0, got {discovery_min_gain}")
+        self.discovery_min_gain = float(discovery_min_gain)
         self.label_tol = float(label_tol)
         self.lambda_data = float(lambda_data)
         self.lambda_smooth = float(lambda_smooth)
@@ -239,6 +325,9 @@ class GraphCutContrastSegmenter(nn.Module):
         refit = {"objective": objective, "optimizer": optimizer, "lr": lr, "sigma": sigma}
         self.refit = ContrastMaximization(self.model, self.sensor_size, max_iter=max_iter, **refit)
         self.warm_refit = ContrastMaximization(self.model, self.sensor_size, max_iter=warm_max_iter, **refit)
+        self.proposal_fit = ContrastMaximization(
+            self.model, self.sensor_size, max_iter=discovery_max_iter, **refit
+        )
 
     def extra_repr(self) -> str:
         return (
@@ -324,7 +413,7 @@ class GraphCutContrastSegmenter(nn.Module):
         labels = (
             None if init_labels is None else self._check_labels(init_labels, events, params).cpu().numpy()
         )
-        timings = dict.fromkeys(("graph", "data_term", "labelling", "refit", "images"), 0.0)
+        timings = dict.fromkeys(("graph", "data_term", "labelling", "refit", "discovery", "images"), 0.0)
         clock = time.perf_counter()
 
         def lap(name: str) -> None:
@@ -352,9 +441,13 @@ class GraphCutContrastSegmenter(nn.Module):
         node_labels = labels if labels is None or sites is None else _site_majority(labels, sites, n_sites)
         lap("graph")
         history: list[float] = []
-        for _ in range(self.n_iter_segmentation):
+        rounds_left, discoveries_left = self.n_iter_segmentation, self.discovery_rounds
+        proposed_from = None
+        while rounds_left > 0:
+            rounds_left -= 1
             with torch.no_grad():
-                cost = self.lambda_data * self.data_term(events, params)
+                event_cost = self.data_term(events, params)
+                cost = self.lambda_data * event_cost
                 if sites_t is not None:
                     cost = cost.new_zeros(n_sites, cost.shape[1]).index_add_(0, sites_t, cost)
             cost = cost.cpu().numpy().astype(np.float64)
@@ -363,7 +456,7 @@ class GraphCutContrastSegmenter(nn.Module):
                 cost,
                 graph,
                 smoothness=self.lambda_smooth,
-                label_cost=self.lambda_label,
+                label_cost=self._label_cost(len(events)),
                 init_labels=node_labels,
                 max_cycles=self.n_iter_labeling,
             )
@@ -376,10 +469,26 @@ class GraphCutContrastSegmenter(nn.Module):
                 or (bool(history) and result.energy == history[-1])
                 or (labels is not None and _changed(labels, new_labels, keep) <= self.label_tol)
             )
+            if proposed_from is not None and not np.any(keep >= proposed_from):
+                discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
+            proposed_from = None
             labels = new_labels
             history.append(result.energy)
             lap("labelling")
-            if converged:
+            if (converged or rounds_left == 0) and discoveries_left > 0:
+                discoveries_left -= 1
+                own = event_cost[
+                    torch.arange(len(events)), torch.as_tensor(keep[labels], device=event_cost.device)
+                ]
+                proposals = self._propose(events, labels, own, params)
+                lap("discovery")
+                if len(proposals):
+                    # The proposals are fitted already: the next labelling decides which are used.
+                    proposed_from = params.shape[0]
+                    params = torch.cat([params, proposals])
+                    rounds_left = max(rounds_left, 1) + 1
+                    continue
+            if converged or rounds_left == 0:
                 break
             labels_t = torch.as_tensor(labels, device=events.xy.device)
             members = self._one_hot(labels_t, params)
@@ -396,6 +505,67 @@ class GraphCutContrastSegmenter(nn.Module):
             )
         lap("images")
         return LevelTwoResult(labels_t, params, iwes, tuple(history), timings)
+
+    def _label_cost(self, n_events: int) -> float:
+        """The label cost of a window of ``n_events``: ``lambda_label``, times
+        ``n_events / label_cost_events`` in windows of more than ``label_cost_events`` events."""
+        if self.label_cost_events is None:
+            return self.lambda_label
+        return self.lambda_label * max(1.0, n_events / self.label_cost_events)
+
+    def _propose(self, events: EventBatch, labels: np.ndarray, own_cost: Tensor, params: Tensor) -> Tensor:
+        """Models fitted to the regions of :func:`~evseg_torch.level_two.discovery.candidate_regions`."""
+        xy = events.xy.detach().cpu().numpy().astype(np.int64)
+        regions = candidate_regions(
+            xy,
+            labels,
+            own_cost.cpu().numpy(),
+            self.sensor_size,
+            min_events=self.discovery_min_events,
+            residual_cost=self.discovery_residual_cost,
+            radius=self.discovery_radius,
+        )
+        regions = regions[: self.discovery_max_proposals]
+        if not regions:
+            return params.new_zeros(0, params.shape[1])
+        members = params.new_zeros(len(regions), len(events))
+        for row, (_, region) in enumerate(regions):
+            members[row, torch.as_tensor(region, device=members.device)] = 1.0
+        members = _subsample(members, _PROPOSAL_MAX_EVENTS)
+        origin = params[torch.as_tensor([cluster for cluster, _ in regions], device=params.device)]
+        velocity = centroid_velocity(events, members)
+        translation = translation_params(self.model, events.xy, members, velocity)
+        own, weights = gather_members(events, members)
+        gathered = EventBatch(own.xy.repeat(2, 1, 1), own.t.repeat(2, 1), own.p.repeat(2, 1))
+        starts = torch.stack([recentred(self.model, events.xy, members, origin, velocity), translation])
+        with torch.no_grad():
+            # Of the two starts, the fit continues from the sharper one: an optimiser's iterations on
+            # the other would mostly be spent where the first already is.
+            sharper = self._region_loss(gathered, starts.flatten(0, 1), weights).view(2, -1).argmin(dim=0)
+        start = starts[sharper, torch.arange(len(regions))]
+        fitted = self.proposal_fit(events, start, members)
+        with torch.no_grad():
+            losses = self._region_loss(gathered, torch.cat([origin, fitted]), weights).view(2, -1)
+        # A proposal that compensates its region less sharply than the region's own model is no proposal.
+        keep = losses[1] <= (1.0 + self.discovery_min_gain) * losses[0]
+        # Event collapse (reference §5): a fit that shrinks or swells its region's area by more than
+        # _MAX_AREA_CHANGE on average has piled events up, not found a motion.
+        with torch.no_grad():
+            area = (warp_area_element(self.model, own, fitted) * weights).sum(dim=1) / weights.sum(dim=1)
+        keep &= (area - 1.0).abs() <= _MAX_AREA_CHANGE
+        return fitted[keep]
+
+    def _region_loss(self, events: EventBatch, params: Tensor, weights: Tensor) -> Tensor:
+        """Contrast loss of ``params`` (two rows per region) on the gathered regions' events."""
+        return contrast_loss(
+            self.model,
+            events,
+            params,
+            weights.repeat(2, 1),
+            sensor_size=self.sensor_size,
+            objective=self.objective,
+            sigma=self.sigma,
+        )
 
     def _check_params(self, params, events: EventBatch) -> Tensor:
         if not isinstance(params, Tensor):

@@ -85,16 +85,17 @@ class TestGraphCutContrastSegmenter:
         assert torch.all(result.iwes.sum((1, 2)) <= sizes + 1e-3)
         assert torch.all(result.iwes.sum((1, 2)) > 0.9 * sizes)
         assert 1 <= len(result.energy_history) <= 5
-        assert set(result.timings_ms) == {"graph", "data_term", "labelling", "refit", "images"}
+        assert set(result.timings_ms) == {"graph", "data_term", "labelling", "refit", "discovery", "images"}
 
     def test_labelling_never_raises_the_energy(self, two_layers):
         events, _, flows = two_layers
         pool = _pool(flows)
-        segmenter = _segmenter(n_iter_segmentation=1)
+        # Without discovery, so that the returned labels come from the one labelling with the pool.
+        segmenter = _segmenter(n_iter_segmentation=1, discovery_rounds=0)
         result = segmenter(events, pool)
         cost = segmenter.data_term(events, pool).double().numpy()
         edges, weights = event_graph(events)
-        energy = {"smoothness": segmenter.lambda_smooth, "label_cost": segmenter.lambda_label}
+        energy = {"smoothness": segmenter.lambda_smooth, "label_cost": segmenter._label_cost(len(events))}
         initial = labeling_energy(cost.argmin(1), cost, edges, weights, **energy)
         assert result.energy_history[0] <= initial
         # The reported energy is the energy of the returned labels under the initial models.
@@ -126,8 +127,11 @@ class TestGraphCutContrastSegmenter:
 
     def test_single_cluster_stops(self, two_layers):
         events, _, flows = two_layers
-        result = _segmenter(lambda_label=1e7)(events, _pool(flows))
+        result = _segmenter(lambda_label=1e7, discovery_rounds=0)(events, _pool(flows))
         assert result.params.shape[0] == 1 and len(result.energy_history) == 1
+        # Discovery still tries to split the last cluster, and the label cost rejects the proposals.
+        result = _segmenter(lambda_label=1e7)(events, _pool(flows))
+        assert result.params.shape[0] == 1 and len(result.energy_history) <= 2
         assert torch.all(result.labels == 0)
 
     def test_does_not_mutate(self, two_layers):
@@ -238,16 +242,127 @@ class TestGraphCutContrastSegmenter:
         assert labelling_accuracy(again.labels.numpy(), labels) > 0.95
 
 
+DISCOVERY_SIZE = (90, 120)
+DISCOVERY_SEEDS = range(8)
+
+
+def _missing_motion_window(seed):
+    """A small two-object scene and a pool that lacks the motion of its larger object."""
+    scene = make_scene(DISCOVERY_SIZE, 0.03, n_objects=2, rng=seed)
+    events = to_torch(scene.events, t_ref_us=int(scene.events["t"][0]))
+    counts = np.bincount(scene.labels[scene.labels >= 0], minlength=3)
+    dropped = 1 + int(np.argmax(counts[1:]))
+    truth = np.stack([motion.params for motion in scene.motions])
+    pool = torch.as_tensor(np.delete(truth, dropped, axis=0), dtype=torch.float32)
+    return scene, events, dropped, pool
+
+
+@pytest.fixture(scope="module")
+def missing_motion():
+    """Per seed: the scene, the dropped layer, the pool and the results without and with discovery."""
+    runs = []
+    for seed in DISCOVERY_SEEDS:
+        scene, events, dropped, pool = _missing_motion_window(seed)
+        model = scene.motions[0].model
+        results = {
+            rounds: GraphCutContrastSegmenter(model, DISCOVERY_SIZE, discovery_rounds=rounds)(events, pool)
+            for rounds in (0, 1)
+        }
+        runs.append((scene, dropped, pool, results))
+    return runs
+
+
+class TestDiscovery:
+    def test_recovers_a_missing_motion(self, missing_motion):
+        # Measured on seeds 0-7: mean IoU of the dropped object 0.35 without discovery, 0.58 with; a
+        # cluster is added on 4 seeds; discovery never lowers the IoU.
+        ious = np.array(
+            [
+                [per_object_iou(results[r].labels.numpy(), scene.labels)[dropped] for r in (0, 1)]
+                for scene, dropped, _, results in missing_motion
+            ]
+        )
+        without, with_discovery = ious.mean(axis=0)
+        assert with_discovery >= 0.5, ious
+        assert with_discovery - without >= 0.15, ious
+        assert np.all(ious[:, 1] >= ious[:, 0] - 0.05), ious
+        added = [results[1].params.shape[0] > results[0].params.shape[0] for *_, results in missing_motion]
+        assert sum(added) >= 3, added
+
+    def test_no_discovery_only_removes_models(self, missing_motion):
+        # The paper's level two: the pool only shrinks, in at most n_iter_segmentation labellings.
+        for _, _, pool, results in missing_motion:
+            assert results[0].params.shape[0] <= pool.shape[0]
+            assert len(results[0].energy_history) <= 5
+            assert results[0].timings_ms["discovery"] == 0.0
+        assert any(results[1].params.shape[0] > pool.shape[0] for _, _, pool, results in missing_motion)
+
+    def test_energy_history_and_labels(self, device):
+        scene, events, _, pool = _missing_motion_window(0)
+        segmenter = GraphCutContrastSegmenter(scene.motions[0].model, DISCOVERY_SIZE, discovery_rounds=1)
+        result = segmenter(events.to(device), pool.to(device))
+        n_clusters = result.params.shape[0]
+        assert len(result.energy_history) >= 2 and all(np.isfinite(result.energy_history))
+        assert result.labels.device.type == device.type and torch.isfinite(result.params).all()
+        sizes = torch.bincount(result.labels, minlength=n_clusters)
+        assert result.labels.min() >= 0 and len(sizes) == n_clusters  # labels index the params
+        assert torch.all(sizes > 0) and torch.all(sizes[:-1] >= sizes[1:])  # renumbered by size
+        assert result.iwes.shape == (n_clusters, *DISCOVERY_SIZE)
+
+    def test_label_cost_scales_with_the_window(self, two_layers):
+        segmenter = _segmenter(lambda_label=3000.0, label_cost_events=5000.0)
+        assert segmenter._label_cost(5000) == pytest.approx(3000.0)
+        assert segmenter._label_cost(1250) == pytest.approx(3000.0)  # sparse windows keep lambda_label
+        assert segmenter._label_cost(20000) == pytest.approx(12000.0)
+        fixed = _segmenter(lambda_label=3000.0, label_cost_events=None)
+        assert fixed._label_cost(1250) == fixed._label_cost(20000) == 3000.0
+        # The labelling pays the scaled cost: its energy is the returned labels' energy with it.
+        events, _, flows = two_layers
+        pool = _pool(flows)
+        segmenter = _segmenter(n_iter_segmentation=1, discovery_rounds=0, label_cost_events=5000.0)
+        result = segmenter(events, pool)
+        cost = segmenter.data_term(events, pool).double().numpy()
+        edges, weights = event_graph(events)
+        mapping = [int(np.argmin(np.abs(pool.numpy() - p.numpy()).sum(1))) for p in result.params]
+        labels = np.asarray(mapping)[result.labels.numpy()]
+        energy = labeling_energy(
+            labels,
+            cost,
+            edges,
+            weights,
+            smoothness=segmenter.lambda_smooth,
+            label_cost=2000.0 * max(1.0, len(events) / 5000),
+        )
+        assert energy == pytest.approx(result.energy_history[0])
+
+    def test_exceptions(self):
+        for name, value in (
+            ("discovery_rounds", -1),
+            ("discovery_min_events", 0),
+            ("discovery_residual_cost", 300.0),
+            ("label_cost_events", 0.0),
+            ("discovery_min_gain", -1.0),
+            ("discovery_radius", -1),
+            ("discovery_max_proposals", 0),
+        ):
+            with pytest.raises(ConfigError, match=name):
+                GraphCutContrastSegmenter("translation", (10, 10), **{name: value})
+
+
 @pytest.mark.slow
 def test_quality_on_synthetic_scenes():
     """Level two alone, from perturbed true models plus two spurious ones, on 10 default affine scenes.
 
-    The issue's bar: accuracy >= 0.9 and every object's IoU >= 0.8 on 8 of 10 scenes, spurious models
-    removed. Met on seeds 0-9 with per-polarity IWEs and the IWE margin (5 of 10 without); seeds 5 and 8
-    fail on straight object outlines that another layer's motion explains as well (the aperture problem)
-    and on a small object. On seeds 10-19 it is met on 2 of 10 (1 without), mean accuracy 0.92.
+    Without discovery (the paper's level two), the issue's bar: accuracy >= 0.9 and every object's IoU
+    >= 0.8 on 8 of 10 scenes, spurious models removed. Met on seeds 0-9 with per-polarity IWEs and the IWE
+    margin (5 of 10 without); seeds 5 and 8 fail on straight object outlines that another layer's motion
+    explains as well (the aperture problem) and on a small object. On seeds 10-19 it is met on 2 of 10
+    (1 without), mean accuracy 0.92.
+
+    With discovery, from this complete pool: 7 of 10 (mean accuracy 0.924 against 0.955): on seed 2 a
+    proposal fitted to part of the background, whose model starts 1 px off, takes half of it.
     """
-    accuracies, worst_ious, extra = [], [], []
+    results = {0: ([], [], []), 1: ([], [], [])}
     for seed in range(10):
         n_objects = 1 + seed % 3
         scene = make_scene((180, 240), 0.03, n_objects=n_objects, rng=seed)
@@ -257,12 +372,18 @@ def test_quality_on_synthetic_scenes():
         init = truth + rng.normal(0, 1.0, truth.shape) / model.displacement_scale(0.03)
         spurious = rng.normal(0, 1, (2, truth.shape[1])) * np.array([600.0, 600.0, 3.0, 3.0])
         pool = torch.as_tensor(np.concatenate([init, spurious]), dtype=torch.float32)
-        result = GraphCutContrastSegmenter(model, (180, 240))(to_torch(scene.events), pool)
-        predicted = result.labels.numpy()
-        accuracies.append(labelling_accuracy(predicted, scene.labels))
-        worst_ious.append(min(per_object_iou(predicted, scene.labels).values()))
-        extra.append(result.params.shape[0] - (n_objects + 1))
-    assert all(count <= 0 for count in extra), extra  # spurious models removed
-    passed = [accuracy >= 0.9 and iou >= 0.8 for accuracy, iou in zip(accuracies, worst_ious, strict=True)]
-    assert sum(passed) >= 8, (accuracies, worst_ious)
-    assert min(accuracies) >= 0.85, accuracies
+        for rounds, (accuracies, worst_ious, extra) in results.items():
+            segmenter = GraphCutContrastSegmenter(model, (180, 240), discovery_rounds=rounds)
+            result = segmenter(to_torch(scene.events), pool)
+            predicted = result.labels.numpy()
+            accuracies.append(labelling_accuracy(predicted, scene.labels))
+            worst_ious.append(min(per_object_iou(predicted, scene.labels).values()))
+            extra.append(result.params.shape[0] - (n_objects + 1))
+    for rounds, floor, (accuracies, worst_ious, extra) in ((0, 8, results[0]), (1, 7, results[1])):
+        passed = [
+            accuracy >= 0.9 and iou >= 0.8 for accuracy, iou in zip(accuracies, worst_ious, strict=True)
+        ]
+        assert sum(passed) >= floor, (rounds, accuracies, worst_ious)
+        assert sum(max(count, 0) for count in extra) <= rounds, (rounds, extra)  # spurious models removed
+    assert min(results[0][0]) >= 0.85, results[0][0]
+    assert np.mean(results[1][0]) >= 0.9, results[1][0]

@@ -1,0 +1,197 @@
+r"""Model discovery for level two: regions of events that may follow a motion missing from the pool.
+
+Level two of the paper (EMSGC's block-coordinate descent) can only remove models, so a motion that level
+one missed, or merged with another, is never recovered. Discovery proposes new models from the current
+labelling; the graph cut, with its label cost, then decides whether each is used. Two kinds of regions
+(spatially connected groups of events on the pixel grid) are proposed:
+
+* **split**: a cluster whose events form two or more separate groups of at least ``min_events`` each
+  (two objects that one compromise model holds, or an object and a patch of background) proposes each
+  group; a cluster of one group other than the largest proposes its two halves across its principal
+  axis (:func:`bisect`): two touching objects held by one compromise model are each compensated more
+  sharply by a model of their own;
+* **merge**: two touching clusters other than the largest (an object that a poor model split in two)
+  propose their union;
+* **residual**: events that their own model compensates badly (data cost at least ``residual_cost`` of
+  the 255 a fully unexplained event pays: a motion-blurred streak) are grouped, and each group of at
+  least ``min_events`` is proposed.
+
+Connectivity: an event's pixel is dilated by ``radius`` pixels (a square), so events of one sparse,
+fast object a few pixels apart join one group while separate objects stay apart.
+
+Each region gets a model by contrast maximisation of its own events from two starts, keeping the sharper
+fit: a pure translation at the velocity of the region's event centroid (the least-squares slope of the
+events' positions over time, which a small object's streak follows closely whatever the pool says), and
+the model of the cluster it came from moved to that velocity, its rotation and scale kept
+(:func:`recentred`; the cluster's own model where the region moves with it).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from evseg_torch.events import EventBatch
+from evseg_torch.motion import MotionModel
+
+__all__ = ["bisect", "candidate_regions", "centroid_velocity", "recentred", "translation_params"]
+
+
+def candidate_regions(
+    xy: np.ndarray,
+    labels: np.ndarray,
+    own_cost: np.ndarray,
+    sensor_size: tuple[int, int],
+    *,
+    min_events: int,
+    residual_cost: float | None,
+    radius: int,
+) -> list[tuple[int, np.ndarray]]:
+    """Regions of events to propose models for (module docstring).
+
+    Args:
+        xy: integer pixel of each event :math:`(N, 2)`, ``x`` the column.
+        labels: cluster of each event :math:`(N,)` in ``[0, K)``.
+        own_cost: data cost of each event under its own cluster's model :math:`(N,)`, in ``[0, 255]``.
+        sensor_size: ``(H, W)``.
+        min_events: fewest events a region needs.
+        residual_cost: events costing at least this under their own model are residual; ``None``
+            proposes no residual regions.
+        radius: dilation of each event's pixel when joining events into regions.
+
+    Returns:
+        ``(cluster, members)`` pairs: the cluster a region came from (the larger of a merged pair, the
+        majority cluster of a residual region) and the int64 indices of its events, largest regions
+        first.
+    """
+    regions = []
+    n_clusters = int(labels.max()) + 1 if len(labels) else 0
+    for cluster in range(n_clusters):
+        groups = _connected_groups(xy, labels == cluster, sensor_size, min_events, radius)
+        if len(groups) == 1:
+            # The largest cluster spans the view (the background): its halves differ by nothing.
+            groups = [part for part in bisect(xy, groups[0]) if len(part) >= min_events] if cluster else []
+        regions += [(cluster, members) for members in groups]
+    for first in range(1, n_clusters):
+        for second in range(first + 1, n_clusters):
+            pair = (labels == first) | (labels == second)
+            touching = any(
+                len(np.unique(labels[members])) == 2
+                for members in _connected_groups(xy, pair, sensor_size, min_events, radius)
+            )
+            if touching:
+                regions.append((first, np.flatnonzero(pair)))
+    if residual_cost is not None:
+        for members in _connected_groups(xy, own_cost >= residual_cost, sensor_size, min_events, radius):
+            regions.append((int(np.bincount(labels[members]).argmax()), members))
+    regions.sort(key=lambda region: -len(region[1]))
+    return regions
+
+
+def _connected_groups(
+    xy: np.ndarray, selected: np.ndarray, sensor_size: tuple[int, int], min_events: int, radius: int
+) -> list[np.ndarray]:
+    """Indices of the selected events in each connected group of at least ``min_events``."""
+    if np.count_nonzero(selected) < min_events:
+        return []
+    height, width = sensor_size
+    chosen = np.flatnonzero(selected)
+    mask = np.zeros((height, width), dtype=np.uint8)
+    mask[xy[chosen, 1], xy[chosen, 0]] = 1
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8)
+    n_groups, group_image = cv2.connectedComponents(cv2.dilate(mask, kernel), connectivity=8)
+    group = group_image[xy[chosen, 1], xy[chosen, 0]]
+    sizes = np.bincount(group, minlength=n_groups)
+    order = np.argsort(group, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(sizes)])
+    return [chosen[order[bounds[g] : bounds[g + 1]]] for g in range(1, n_groups) if sizes[g] >= min_events]
+
+
+def bisect(xy: np.ndarray, members: np.ndarray, n_steps: int = 8) -> list[np.ndarray]:
+    """Two halves of a group of events, split across its principal axis by 2-means along that axis.
+
+    Args:
+        xy: event pixels :math:`(N, 2)`.
+        members: indices of the group's events.
+        n_steps: Lloyd iterations, starting from the split at the median.
+
+    Returns:
+        The indices of the two halves (one may be empty).
+    """
+    points = xy[members].astype(np.float64)
+    centred = points - points.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred.T @ centred)
+    along = centred @ axes[0]
+    cut = float(np.median(along))
+    for _ in range(n_steps):
+        low, high = along[along <= cut], along[along > cut]
+        if not len(low) or not len(high):
+            break
+        cut = 0.5 * (low.mean() + high.mean())
+    return [members[along <= cut], members[along > cut]]
+
+
+def centroid_velocity(events: EventBatch, weights: Tensor) -> Tensor:
+    r"""Least-squares velocity of each weighted event set's centroid over time, px/s.
+
+    Args:
+        events: ``xy`` :math:`(N, 2)`, ``t`` :math:`(N,)`.
+        weights: non-negative :math:`(R, N)`, one row per set.
+
+    Returns:
+        :math:`(R, 2)`; zero for a set whose events all share one time.
+    """
+    total = weights.sum(dim=1, keepdim=True).clamp_min(1e-12)
+    t_mean = weights @ events.t[:, None] / total
+    xy_mean = weights @ events.xy / total
+    dt = events.t[None, :] - t_mean
+    spread = (weights * dt**2).sum(dim=1, keepdim=True)
+    moment = (
+        torch.einsum("rn,rn,nc->rc", weights, dt, events.xy)
+        - (weights * dt).sum(dim=1, keepdim=True) * xy_mean
+    )
+    return torch.where(spread > 0, moment / spread.clamp_min(1e-30), torch.zeros_like(moment))
+
+
+def translation_params(model: MotionModel, xy: Tensor, weights: Tensor, velocity: Tensor) -> Tensor:
+    r"""Parameters of ``model`` closest (least squares) to a uniform velocity over each weighted set.
+
+    For translation and affine4 this is exactly the translation; rotation3d gets its best approximation.
+
+    Args:
+        xy: event pixels :math:`(N, 2)`.
+        weights: non-negative :math:`(R, N)`.
+        velocity: :math:`(R, 2)` px/s.
+
+    Returns:
+        :math:`(R, P)`.
+    """
+    jac = model.jacobian(xy)  # (N, 2, P)
+    normal = torch.einsum("rn,nap,naq->rpq", weights, jac, jac)
+    rhs = torch.einsum("rn,nap,ra->rp", weights, jac, velocity)
+    ridge = 1e-9 * normal.diagonal(dim1=1, dim2=2).amax(dim=1).clamp_min(1e-12)
+    eye = torch.eye(normal.shape[-1], dtype=normal.dtype, device=normal.device)
+    return torch.linalg.solve(normal + ridge[:, None, None] * eye, rhs[..., None])[..., 0]
+
+
+def recentred(model: MotionModel, xy: Tensor, weights: Tensor, params: Tensor, velocity: Tensor) -> Tensor:
+    r"""Models moved so that each weighted set's mean velocity is ``velocity``, their rotation and scale kept.
+
+    ``params`` plus the :func:`translation_params` of the difference between ``velocity`` and the set's
+    mean velocity under ``params``: a cluster's model carried over to a part of it that moves otherwise.
+
+    Args:
+        xy: event pixels :math:`(N, 2)`.
+        weights: non-negative :math:`(R, N)`.
+        params: :math:`(R, P)`.
+        velocity: :math:`(R, 2)` px/s.
+
+    Returns:
+        :math:`(R, P)`.
+    """
+    total = weights.sum(dim=1, keepdim=True).clamp_min(1e-12)
+    jac = model.jacobian(xy)  # (N, 2, P)
+    mean_velocity = torch.einsum("rn,nap,rp->ra", weights, jac, params) / total
+    return params + translation_params(model, xy, weights, velocity - mean_velocity)
