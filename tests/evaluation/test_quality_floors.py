@@ -1,0 +1,51 @@
+"""Quality floors of the whole pipeline on scenes the project did not design, and on the 'hard' family.
+
+Each floor is a mean over many scenes, a few points under the value measured when it was set (see
+the README's results); noise and ambiguous events are left out, as the probe's README prescribes.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from evseg_torch.evaluation.labelled import evaluate_labelled
+from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
+from evseg_torch.pipeline import CascadedSegmenter
+
+PROBE = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "synthetic_probe"
+# Measured means with the default config: accuracy 0.926, IMO IoU 0.771, detection 0.806, |count error|
+# 0.21 (24 scenes; before level two's discovery and Progressive-X's stopping rule: 0.896, 0.615, 0.604,
+# 0.54). The issue's bars (0.94, 0.80, 0.95, 0.2) are not met yet.
+PROBE_FLOORS = {"accuracy": 0.91, "iou": 0.74, "detection": 0.77, "abs_count_error": 0.3}
+# Measured on seeds 0-19 of the 'hard' family: accuracy 0.926, IMO IoU 0.629, detection 0.658.
+FAMILY_FLOORS = {"accuracy": 0.91, "iou": 0.6, "detection": 0.62}
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.mark.skipif(not PROBE.is_dir(), reason="../shared/data/synthetic_probe is not beside the repository")
+def test_probe_scenes():
+    scores = evaluate_labelled(sorted(PROBE.glob("scene_*.npz")), None)
+    assert len(scores) == 24
+    accuracy = np.mean([s.accuracy for s in scores])
+    iou = np.mean([s.iou for s in scores])
+    detection = np.mean([s.detection for s in scores])
+    abs_count = np.mean([abs(s.count_error) for s in scores])
+    assert accuracy >= PROBE_FLOORS["accuracy"], accuracy
+    assert iou >= PROBE_FLOORS["iou"], iou
+    assert detection >= PROBE_FLOORS["detection"], detection
+    assert abs_count <= PROBE_FLOORS["abs_count_error"], abs_count
+
+
+def test_hard_family():
+    summary = summarize(evaluate_synthetic(CascadedSegmenter((180, 240)), range(20), family="hard"))
+    for name, floor in FAMILY_FLOORS.items():
+        assert summary[name] >= floor, (name, summary[name])
