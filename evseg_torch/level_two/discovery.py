@@ -137,21 +137,21 @@ def centroid_velocity(events: EventBatch, weights: Tensor) -> Tensor:
     r"""Least-squares velocity of each weighted event set's centroid over time, px/s.
 
     Args:
-        events: ``xy`` :math:`(N, 2)`, ``t`` :math:`(N,)`.
+        events: ``xy`` :math:`(N, 2)` and ``t`` :math:`(N,)` shared by every set, or each set's own
+            (padded) events ``xy`` :math:`(R, N, 2)`, ``t`` :math:`(R, N)` (see
+            :func:`~evseg_torch.level_two.contrast.gather_members`).
         weights: non-negative :math:`(R, N)`, one row per set.
 
     Returns:
         :math:`(R, 2)`; zero for a set whose events all share one time.
     """
+    xy, t = _rows(events.xy, weights), _rows(events.t, weights)
     total = weights.sum(dim=1, keepdim=True).clamp_min(1e-12)
-    t_mean = weights @ events.t[:, None] / total
-    xy_mean = weights @ events.xy / total
-    dt = events.t[None, :] - t_mean
+    t_mean = (weights * t).sum(dim=1, keepdim=True) / total
+    xy_mean = torch.einsum("rn,rnc->rc", weights, xy) / total
+    dt = t - t_mean
     spread = (weights * dt**2).sum(dim=1, keepdim=True)
-    moment = (
-        torch.einsum("rn,rn,nc->rc", weights, dt, events.xy)
-        - (weights * dt).sum(dim=1, keepdim=True) * xy_mean
-    )
+    moment = torch.einsum("rn,rnc->rc", weights * dt, xy) - (weights * dt).sum(dim=1, keepdim=True) * xy_mean
     return torch.where(spread > 0, moment / spread.clamp_min(1e-30), torch.zeros_like(moment))
 
 
@@ -161,16 +161,16 @@ def translation_params(model: MotionModel, xy: Tensor, weights: Tensor, velocity
     For translation and affine4 this is exactly the translation; rotation3d gets its best approximation.
 
     Args:
-        xy: event pixels :math:`(N, 2)`.
+        xy: event pixels :math:`(N, 2)` shared by every set, or each set's own :math:`(R, N, 2)`.
         weights: non-negative :math:`(R, N)`.
         velocity: :math:`(R, 2)` px/s.
 
     Returns:
         :math:`(R, P)`.
     """
-    jac = model.jacobian(xy)  # (N, 2, P)
-    normal = torch.einsum("rn,nap,naq->rpq", weights, jac, jac)
-    rhs = torch.einsum("rn,nap,ra->rp", weights, jac, velocity)
+    jac = model.jacobian(_rows(xy, weights))  # (R, N, 2, P)
+    normal = torch.einsum("rn,rnap,rnaq->rpq", weights, jac, jac)
+    rhs = torch.einsum("rn,rnap,ra->rp", weights, jac, velocity)
     ridge = 1e-9 * normal.diagonal(dim1=1, dim2=2).amax(dim=1).clamp_min(1e-12)
     eye = torch.eye(normal.shape[-1], dtype=normal.dtype, device=normal.device)
     return torch.linalg.solve(normal + ridge[:, None, None] * eye, rhs[..., None])[..., 0]
@@ -183,7 +183,7 @@ def recentred(model: MotionModel, xy: Tensor, weights: Tensor, params: Tensor, v
     mean velocity under ``params``: a cluster's model carried over to a part of it that moves otherwise.
 
     Args:
-        xy: event pixels :math:`(N, 2)`.
+        xy: event pixels :math:`(N, 2)` shared by every set, or each set's own :math:`(R, N, 2)`.
         weights: non-negative :math:`(R, N)`.
         params: :math:`(R, P)`.
         velocity: :math:`(R, 2)` px/s.
@@ -192,6 +192,13 @@ def recentred(model: MotionModel, xy: Tensor, weights: Tensor, params: Tensor, v
         :math:`(R, P)`.
     """
     total = weights.sum(dim=1, keepdim=True).clamp_min(1e-12)
-    jac = model.jacobian(xy)  # (N, 2, P)
-    mean_velocity = torch.einsum("rn,nap,rp->ra", weights, jac, params) / total
+    jac = model.jacobian(_rows(xy, weights))  # (R, N, 2, P)
+    mean_velocity = torch.einsum("rn,rnap,rp->ra", weights, jac, params) / total
     return params + translation_params(model, xy, weights, velocity - mean_velocity)
+
+
+def _rows(value: Tensor, weights: Tensor) -> Tensor:
+    """``value`` with one row per set: shared values :math:`(N, ...)` are broadcast (a view) to R rows."""
+    if value.shape[:2] == weights.shape:
+        return value
+    return value.expand(weights.shape[0], *value.shape)

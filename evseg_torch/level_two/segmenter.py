@@ -533,11 +533,11 @@ class GraphCutContrastSegmenter(nn.Module):
             members[row, torch.as_tensor(region, device=members.device)] = 1.0
         members = _subsample(members, _PROPOSAL_MAX_EVENTS)
         origin = params[torch.as_tensor([cluster for cluster, _ in regions], device=params.device)]
-        velocity = centroid_velocity(events, members)
-        translation = translation_params(self.model, events.xy, members, velocity)
         own, weights = gather_members(events, members)
+        velocity = centroid_velocity(own, weights)
+        translation = translation_params(self.model, own.xy, weights, velocity)
         gathered = EventBatch(own.xy.repeat(2, 1, 1), own.t.repeat(2, 1), own.p.repeat(2, 1))
-        starts = torch.stack([recentred(self.model, events.xy, members, origin, velocity), translation])
+        starts = torch.stack([recentred(self.model, own.xy, weights, origin, velocity), translation])
         with torch.no_grad():
             # Of the two starts, the fit continues from the sharper one: an optimiser's iterations on
             # the other would mostly be spent where the first already is.

@@ -3,6 +3,7 @@ import pytest
 import torch
 
 from evseg_torch.events import EventBatch
+from evseg_torch.level_two.contrast import gather_members
 from evseg_torch.level_two.discovery import (
     bisect,
     candidate_regions,
@@ -283,3 +284,24 @@ class TestRecentred:
             model, xy, torch.ones(1, 50, dtype=torch.float64), torch.tensor([[5.0, 6.0]]).double(), velocity
         )
         torch.testing.assert_close(moved, velocity)
+
+
+def test_gathered_events_give_the_shared_results():
+    """Each set's own (gathered, padded) events give what the shared events with weights give."""
+    rng = np.random.default_rng(3)
+    xy = torch.as_tensor(rng.uniform(0, 100, (300, 2)))
+    events = EventBatch(xy, torch.as_tensor(rng.uniform(0, 0.03, 300)), torch.ones(300, dtype=xy.dtype))
+    weights = torch.as_tensor((rng.uniform(size=(3, 300)) < 0.3).astype(np.float64))
+    own, own_weights = gather_members(events, weights)
+    model = Affine4((100, 100))
+    velocity = centroid_velocity(events, weights)
+    torch.testing.assert_close(centroid_velocity(own, own_weights), velocity)
+    params = torch.as_tensor(rng.normal(0, 1, (3, 4)))
+    torch.testing.assert_close(
+        translation_params(model, own.xy, own_weights, velocity),
+        translation_params(model, xy, weights, velocity),
+    )
+    torch.testing.assert_close(
+        recentred(model, own.xy, own_weights, params, velocity),
+        recentred(model, xy, weights, params, velocity),
+    )
