@@ -337,7 +337,10 @@ class GraphCutContrastSegmenter(nn.Module):
             f"sigma={self.sigma}, temporal_edges={self.temporal_edges}, "
             f"refit_max_events={self.refit_max_events}, "
             f"label_tol={self.label_tol}, site_time_slices={self.site_time_slices}, "
-            f"max_iter={self.refit.max_iter}, warm_max_iter={self.warm_refit.max_iter}"
+            f"max_iter={self.refit.max_iter}, warm_max_iter={self.warm_refit.max_iter}, "
+            f"label_cost_events={self.label_cost_events}, discovery_rounds={self.discovery_rounds}, "
+            f"discovery_max_proposals={self.discovery_max_proposals}, "
+            f"discovery_max_iter={self.proposal_fit.max_iter}"
         )
 
     def forward(
