@@ -556,11 +556,11 @@ def _crops(
         extent = (high - low).clamp_min(0)
         small = (extent[:, 0] + 1) * (extent[:, 1] + 1) <= _SMALL_CROP * height * width
     groups = []
-    for chosen in (small, ~small):
+    for chosen, cropped in ((small, True), (~small, False)):
         rows = chosen.nonzero()[:, 0]
         if not len(rows):
             continue
-        span = extent[rows].amax(dim=0) if chosen is small else limit
+        span = extent[rows].amax(dim=0) if cropped else limit
         origin = torch.minimum(low[rows], limit - span)
         shifted = warp.rows(rows)._replace(xy=warp.xy[rows] - origin[:, None, :])
         groups.append((rows, shifted, (int(span[1]) + 1, int(span[0]) + 1)))

@@ -2,8 +2,8 @@ r"""Model discovery for level two: regions of events that may follow a motion mi
 
 Level two of the paper (EMSGC's block-coordinate descent) can only remove models, so a motion that level
 one missed, or merged with another, is never recovered. Discovery proposes new models from the current
-labelling; the graph cut, with its label cost, then decides whether each is used. Two kinds of regions
-(spatially connected groups of events on the pixel grid) are proposed:
+labelling; the graph cut, with its label cost, then decides whether each is used. Three kinds of
+regions (spatially connected groups of events on the pixel grid) are proposed:
 
 * **split**: a cluster whose events form two or more separate groups of at least ``min_events`` each
   (two objects that one compromise model holds, or an object and a patch of background) proposes each
@@ -71,7 +71,8 @@ def candidate_regions(
     for cluster in range(n_clusters):
         groups = _connected_groups(xy, labels == cluster, sensor_size, min_events, radius)
         if len(groups) == 1:
-            # The largest cluster spans the view (the background): its halves differ by nothing.
+            # Not the largest cluster: it spans the view (the background), and a model of half of it
+            # only overfits that half (measured: it split the background of sparse windows).
             groups = [part for part in bisect(xy, groups[0]) if len(part) >= min_events] if cluster else []
         regions += [(cluster, members) for members in groups]
     for first in range(1, n_clusters):

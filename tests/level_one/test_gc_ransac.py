@@ -5,6 +5,7 @@ import pytest
 
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.level_one.gc_ransac import (
+    QUALITIES,
     Correspondences,
     gc_ransac,
     graph_cut_inliers,
@@ -130,10 +131,13 @@ class TestGCRansac:
         assert np.mean(inliers[truth == -1]) < 0.15
         assert 20 <= n_iterations <= 1000
 
-    def test_compound_preference_proposes_unexplained_motion(self):
+    @pytest.mark.parametrize("quality", QUALITIES)
+    def test_compound_preference_proposes_unexplained_motion(self, quality):
         model, src, dst, dt, truth, params = make_scene(0, "affine4", 2)
         background = preference(model.residuals(params[0], src, dst, dt) ** 2, 1.5)
-        found, inliers, _ = gc_ransac(src, dst, dt, model, compound_preference=background, rng=0)
+        found, inliers, _ = gc_ransac(
+            src, dst, dt, model, compound_preference=background, quality=quality, rng=0
+        )
         errors = np.linalg.norm(model.predict(src, DT, found) - model.predict(src, DT, params[1]), axis=1)
         assert errors[truth == 1].max() < 0.5
         assert np.all(inliers[truth == 1]) and not inliers[truth == 0].any()

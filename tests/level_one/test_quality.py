@@ -7,7 +7,7 @@ from evseg_torch.config import LevelOneConfig, config_from_dict, load_config
 from evseg_torch.errors import ConfigError
 from evseg_torch.level_one.gc_ransac import QUALITIES, _Scoring, gc_ransac, preference
 from evseg_torch.level_one.progressive_x import progressive_x
-from tests.level_one.test_progressive_x import DT, make_scene
+from tests.level_one.test_progressive_x import make_scene
 
 # tau = 1 px, so gamma = 1.5 px and gamma^2 = 2.25 px^2: squared errors 0, 0.5625, 1.125, 2.25 and 9
 # give preferences 1, 0.75, 0.5, 0 and 0.
@@ -70,17 +70,6 @@ class TestHandComputed:
 
 
 class TestProposals:
-    @pytest.mark.parametrize("quality", QUALITIES)
-    def test_compound_preference_proposes_unexplained_motion(self, quality):
-        model, src, dst, dt, truth, params = make_scene(0, "affine4", 2)
-        background = preference(model.residuals(params[0], src, dst, dt) ** 2, 1.5)
-        found, inliers, _ = gc_ransac(
-            src, dst, dt, model, compound_preference=background, quality=quality, rng=0
-        )
-        errors = np.linalg.norm(model.predict(src, DT, found) - model.predict(src, DT, params[1]), axis=1)
-        assert errors[truth == 1].max() < 0.5
-        assert np.all(inliers[truth == 1]) and not inliers[truth == 0].any()
-
     def test_default_is_progressive_x(self):
         model, src, dst, dt, _, _ = make_scene(2, "affine4", 3)
         default = progressive_x(src, dst, dt, model, rng=0)
