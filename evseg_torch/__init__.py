@@ -6,7 +6,7 @@ one, io, metrics) import without it.
 
 from evseg_torch.config import SegmenterConfig, load_config
 from evseg_torch.errors import ConfigError, EventFormatError, EvsegError, ModelError, ReaderError, ShapeError
-from evseg_torch.events import EVENT_DTYPE, EventBatch, as_events, to_torch
+from evseg_torch.events import EVENT_DTYPE, EventBatch, as_events, batch_windows, to_torch
 from evseg_torch.io import load_events
 
 __version__ = "0.1.0"
@@ -36,6 +36,7 @@ __all__ = [
     "ShapeError",
     "__version__",
     "as_events",
+    "batch_windows",
     "load_config",
     "load_events",
     "to_torch",

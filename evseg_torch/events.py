@@ -27,7 +27,7 @@ would hide the defect. Sort first with ``events[np.argsort(events["t"], kind="st
 from __future__ import annotations
 
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -242,24 +242,107 @@ def iter_windows(
 
 
 class EventBatch(NamedTuple):
-    """One window of events as torch tensors.
+    """Events as torch tensors: one window, or a padded batch of windows.
+
+    One window: ``xy`` :math:`(N, 2)`, ``t`` :math:`(N,)`, ``p`` :math:`(N,)` and ``lengths`` ``None``.
+    A batch of B windows (the one batch form of evseg_torch, built by :func:`batch_windows`): each field
+    gains a leading batch dimension and is padded to the longest window, ``xy`` :math:`(B, N_{max}, 2)`,
+    ``t`` and ``p`` :math:`(B, N_{max})`, and ``lengths`` int64 :math:`(B,)` counts each window's real
+    events; padding sits at the end of each row, with every field 0 there (``p`` = 0 is no polarity).
 
     Attributes:
-        xy: pixel coordinates, ``x`` the column and ``y`` the row, :math:`(N, 2)`.
-        t: seconds relative to the window's reference time, :math:`(N,)`.
-        p: polarity in {-1, +1}, :math:`(N,)`.
+        xy: pixel coordinates, ``x`` the column and ``y`` the row.
+        t: seconds relative to each window's reference time.
+        p: polarity in {-1, +1} (0 for padding).
+        lengths: events per window of a batch; ``None`` for one window.
+
+    ``len()`` is the size of the first dimension: the number of events of one window, the number of
+    windows of a batch.
     """
 
     xy: torch.Tensor
     t: torch.Tensor
     p: torch.Tensor
+    lengths: torch.Tensor | None = None
+
+    @property
+    def is_batched(self) -> bool:
+        """Whether this is a padded batch of windows."""
+        return self.lengths is not None
+
+    @property
+    def mask(self) -> torch.Tensor:
+        """Which entries are real events: bool, :math:`(B, N_{max})` for a batch, :math:`(N,)` for one window."""
+        import torch
+
+        if self.lengths is None:
+            return torch.ones(self.t.shape, dtype=torch.bool, device=self.t.device)
+        return torch.arange(self.t.shape[-1], device=self.t.device) < self.lengths[:, None]
 
     def to(self, *args, **kwargs) -> EventBatch:
-        """Move or cast every tensor, as :meth:`torch.Tensor.to` does."""
-        return EventBatch(*(tensor.to(*args, **kwargs) for tensor in self))
+        """Move or cast the event tensors, as :meth:`torch.Tensor.to` does; ``lengths`` only moves."""
+        xy, t, p = (tensor.to(*args, **kwargs) for tensor in (self.xy, self.t, self.p))
+        lengths = None if self.lengths is None else self.lengths.to(device=xy.device)
+        return EventBatch(xy, t, p, lengths)
 
-    def __len__(self) -> int:  # a NamedTuple's len would be 3, the number of fields
+    def unbatch(self) -> list[EventBatch]:
+        """The windows of a batch, each without its padding (views, not copies)."""
+        if self.lengths is None:
+            raise EventFormatError("unbatch needs a padded batch of windows (lengths given), got one window")
+        return [
+            EventBatch(self.xy[row, :count], self.t[row, :count], self.p[row, :count])
+            for row, count in enumerate(self.lengths.tolist())
+        ]
+
+    def __len__(self) -> int:  # a NamedTuple's len would be 4, the number of fields
         return int(self.t.shape[0])
+
+
+def batch_windows(windows: Sequence[EventBatch]) -> EventBatch:
+    """Pad windows into one batch (see :class:`EventBatch`).
+
+    Args:
+        windows: B single windows, all of one dtype and on one device.
+
+    Returns:
+        The padded batch, ``lengths`` the windows' event counts.
+
+    Raises:
+        EventFormatError: no windows, a window that is itself a batch, or windows whose fields are not
+            ``xy`` :math:`(N, 2)`, ``t`` and ``p`` :math:`(N,)`.
+
+    Examples:
+        >>> import torch
+        >>> one = EventBatch(torch.zeros(3, 2), torch.zeros(3), torch.ones(3))
+        >>> two = EventBatch(torch.ones(1, 2), torch.zeros(1), -torch.ones(1))
+        >>> batch = batch_windows([one, two])
+        >>> batch.xy.shape, batch.lengths.tolist(), batch.p[1].tolist()
+        (torch.Size([2, 3, 2]), [3, 1], [-1.0, 0.0, 0.0])
+    """
+    import torch
+
+    windows = list(windows)
+    if not windows:
+        raise EventFormatError("batch_windows needs at least one window, got none")
+    for index, window in enumerate(windows):
+        if not isinstance(window, EventBatch) or window.is_batched:
+            raise EventFormatError(f"window {index} is not a single EventBatch window")
+        count = len(window)
+        if window.xy.shape != (count, 2) or window.p.shape != (count,) or window.t.ndim != 1:
+            raise EventFormatError(
+                f"window {index} must have xy (N, 2), t (N,), p (N,); got {tuple(window.xy.shape)}, "
+                f"{tuple(window.t.shape)}, {tuple(window.p.shape)}"
+            )
+    first = windows[0]
+    lengths = torch.tensor([len(window) for window in windows], dtype=torch.int64, device=first.t.device)
+    longest = int(lengths.max()) if len(windows) else 0
+    xy = first.xy.new_zeros(len(windows), longest, 2)
+    t = first.t.new_zeros(len(windows), longest)
+    p = first.p.new_zeros(len(windows), longest)
+    for row, window in enumerate(windows):
+        count = len(window)
+        xy[row, :count], t[row, :count], p[row, :count] = window.xy, window.t, window.p
+    return EventBatch(xy, t, p, lengths)
 
 
 def to_torch(
