@@ -272,7 +272,7 @@ class EventBatch(NamedTuple):
 
     @property
     def mask(self) -> torch.Tensor:
-        """Which entries are real events: bool, :math:`(B, N_{max})` for a batch, :math:`(N,)` for one window."""
+        """Which entries are real events (bool): :math:`(B, N_{max})` for a batch, :math:`(N,)` else."""
         import torch
 
         if self.lengths is None:
