@@ -96,6 +96,10 @@ class LevelOneConfig:
             ``shared/data/synthetic_probe`` IoU 0.704 → 0.689, detection 0.74 → 0.72; synthetic seeds
             0-19 IoU 0.834 → 0.801, detection 0.96 → 0.92.
         reuse_models: bootstrap each window with the previous window's models (paper Table III).
+        initial_models: what models given to the segmenter (a previous window's, or a network's
+            proposals) do. ``augment`` (default): level one runs and starts from them, so its pool holds
+            them and what it adds; ``replace``: level one does not run and they are level two's pool (a
+            stream then runs level one only on its first window, or after a window that kept no model).
     """
 
     threshold: float = 1.5
@@ -109,10 +113,15 @@ class LevelOneConfig:
     scoring_exponent: float = 1.0
     quality: str = "progressive_x"
     reuse_models: bool = True
+    initial_models: str = "augment"
 
     def __post_init__(self):
         if self.quality not in ("progressive_x", "paper"):
             raise ConfigError(f"level_one.quality must be 'progressive_x' or 'paper', got {self.quality!r}")
+        if self.initial_models not in ("augment", "replace"):
+            raise ConfigError(
+                f"level_one.initial_models must be 'augment' or 'replace', got {self.initial_models!r}"
+            )
 
 
 @dataclass(frozen=True)

@@ -14,13 +14,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from evseg_torch.config import SegmenterConfig, load_config, replace_config
-from evseg_torch.errors import ConfigError, EventFormatError
-from evseg_torch.events import as_events, check_sensor_size, iter_windows, to_torch
+from evseg_torch.errors import ConfigError, EventFormatError, ModelError
+from evseg_torch.events import EventBatch, as_events, check_sensor_size, iter_windows, to_torch
 from evseg_torch.level_one.features import Correspondences, extract_correspondences
 from evseg_torch.level_one.progressive_x import ProgressiveXResult, progressive_x
+from evseg_torch.level_two.iwe import warp_events
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.motion import MotionModel, make_motion_model
 
@@ -34,6 +35,10 @@ _MAX_PIXELS = 1 << 24
 @dataclass(frozen=True)
 class Segmentation:
     """The result of segmenting one window.
+
+    ``labels``, ``models``, ``warped_xy`` and ``iwes`` are NumPy arrays, or torch tensors on the
+    segmenter's device when it was given a tensor or an :class:`~evseg_torch.events.EventBatch` (the
+    dtypes below are then the module's); everything else is NumPy either way.
 
     Attributes:
         labels: cluster of each event in input order, int64 :math:`(N,)`; ``-1`` only for events
@@ -154,25 +159,46 @@ class CascadedSegmenter(nn.Module):
         return f"sensor_size={self.sensor_size}, motion_model={self.config.motion_model!r}"
 
     def forward(
-        self, events, t_ref: float | None = None, initial_models: np.ndarray | None = None
-    ) -> Segmentation:
-        """Segment one window.
+        self, events, t_ref: float | None = None, initial_models: np.ndarray | Tensor | None = None
+    ) -> Segmentation | list[Segmentation]:
+        """Segment one window, or each window of a padded batch.
 
         Args:
-            events: the window's events in any form :func:`~evseg_torch.events.as_events` accepts.
+            events: the window's events in any form :func:`~evseg_torch.events.as_events` accepts, a torch
+                tensor :math:`(N, 4)` ``[t_seconds, x, y, p]`` or an :class:`~evseg_torch.events.EventBatch`
+                (on any device; a padded batch of B windows gives B results).
             t_ref: reference time in seconds of the input's time base; defaults to the first event.
-            initial_models: models of a previous window, :math:`(M, P)`, to bootstrap level one.
+            initial_models: models to start from, :math:`(M, P)` (a previous window's, or a network's
+                proposals; :math:`(B, M, P)` for a padded batch); NumPy or torch. The config's
+                ``level_one.initial_models`` says whether level one augments them or is skipped.
 
         Returns:
-            :class:`Segmentation`.
+            :class:`Segmentation` (a list of them for a padded batch). When ``events`` is a tensor or an
+            ``EventBatch``, its ``labels``, ``models``, ``warped_xy``, ``iwes`` and ``soft_assignments``
+            are torch tensors on the module's device; level one's outputs and ``events`` stay NumPy.
 
         Raises:
             EventFormatError: the events are invalid (see :func:`~evseg_torch.events.as_events`), all at
                 one time, or ``t_ref`` is not a finite number of seconds within int64 microseconds of them.
             ModelError: ``initial_models`` is malformed.
         """
-        events = as_events(events, self.sensor_size)
-        return self._segment(events, t_ref, initial_models)
+        if isinstance(events, EventBatch) and events.is_batched:
+            if initial_models is None:
+                initial_models = [None] * len(events)
+            if len(initial_models) != len(events):
+                raise ModelError(
+                    f"initial_models must hold one (M, P) stack per window ({len(events)}), "
+                    f"got {len(initial_models)}"
+                )
+            return [
+                self.forward(window, t_ref, models)
+                for window, models in zip(events.unbatch(), initial_models, strict=True)
+            ]
+        as_tensors = isinstance(events, (Tensor, EventBatch))
+        events = as_events(_event_rows(events), self.sensor_size)
+        if isinstance(initial_models, Tensor):
+            initial_models = initial_models.detach().cpu().numpy()
+        return self._segment(events, t_ref, initial_models, as_tensors)
 
     def stream(
         self,
@@ -210,7 +236,9 @@ class CascadedSegmenter(nn.Module):
                 previous = result.models[self.motion.plausible(result.models)]
             yield replace(result, offset=window.offset, window_index=window.index)
 
-    def _segment(self, events: np.ndarray, t_ref: float | None, initial_models) -> Segmentation:
+    def _segment(
+        self, events: np.ndarray, t_ref: float | None, initial_models, as_tensors: bool = False
+    ) -> Segmentation:
         cfg = self.config
         start = time.perf_counter()
         t_ref_us = _reference_us(events, t_ref)
@@ -221,12 +249,12 @@ class CascadedSegmenter(nn.Module):
         batch = to_torch(events, t_ref_us=t_ref_us, device=device, dtype=dtype)
         with torch.no_grad():
             two = self.level_two(batch, torch.as_tensor(pool, device=device, dtype=dtype))
-        labels = np.asarray(_numpy(two.labels), dtype=np.int64)
-        models = np.asarray(_numpy(two.params), dtype=np.float64)
-        xy = np.column_stack([events["x"], events["y"]]).astype(np.float64)
-        dt = (events["t"] - t_ref_us) * 1e-6
-        own = models[np.clip(labels, 0, None)]
-        warped = xy - dt[:, None] * (self.motion.jacobian(xy) @ own[:, :, None])[..., 0]
+            own = two.params[two.labels]
+            warped = warp_events(self.motion, batch.xy[:, None], batch.t[:, None], own)[:, 0]
+        labels, models, iwes = two.labels, two.params, two.iwes
+        if not as_tensors:
+            labels, iwes = _numpy(labels), _numpy(iwes)
+            models, warped = _numpy(models).astype(np.float64), _numpy(warped).astype(np.float64)
         end = time.perf_counter()
         return Segmentation(
             labels=labels,
@@ -237,7 +265,7 @@ class CascadedSegmenter(nn.Module):
             feature_tracks=tracks,
             feature_labels=np.asarray(fitted.labels, dtype=np.int64),
             level_one_models=np.asarray(fitted.params, dtype=np.float64),
-            iwes=np.asarray(_numpy(two.iwes)),
+            iwes=iwes,
             energy_history=tuple(two.energy_history),
             timings_ms={
                 "features": 1e3 * (after_features - start),
@@ -250,14 +278,16 @@ class CascadedSegmenter(nn.Module):
         )
 
     def _level_one(self, events: np.ndarray, t_ref_us: int, initial_models):
-        """Features and Progressive-X; nothing to track in a window of one instant or on a tiny sensor."""
+        """Features and Progressive-X; skipped in a window of one instant, on a tiny sensor, or when the
+        config says that given models replace level one."""
         cfg = self.config
-        if events["t"][-1] == events["t"][0] or min(self.sensor_size) < _MIN_FEATURE_SIZE:
+        given = None if initial_models is None else self.motion.check_instances(initial_models)
+        replaced = given is not None and len(given) and cfg.level_one.initial_models == "replace"
+        if replaced or events["t"][-1] == events["t"][0] or min(self.sensor_size) < _MIN_FEATURE_SIZE:
             empty = np.zeros((0, 2))
             tracks = Correspondences(empty, empty, np.zeros(0), 0.0, 0.0)
-            fitted = ProgressiveXResult(
-                np.zeros((0, self.motion.n_params)), np.zeros(0, dtype=np.int64), 0, 0
-            )
+            pool = given if replaced else np.zeros((0, self.motion.n_params))
+            fitted = ProgressiveXResult(pool, np.zeros(0, dtype=np.int64), 0, 0)
             return tracks, fitted, time.perf_counter()
         feats = cfg.features
         tracks = extract_correspondences(
@@ -322,6 +352,15 @@ def _as_chunks(events, sensor_size) -> Iterable[np.ndarray]:
     if isinstance(events, np.ndarray) or not isinstance(events, Iterable):
         return [as_events(events, sensor_size)]
     return (as_events(chunk, sensor_size) for chunk in events)
+
+
+def _event_rows(events):
+    """A tensor or an ``EventBatch`` as NumPy ``[t_seconds, x, y, p]`` rows; any other input as it is."""
+    if isinstance(events, EventBatch):
+        events = torch.column_stack([events.t.double(), events.xy.double(), events.p.double()])
+    if isinstance(events, Tensor):
+        return events.detach().cpu().double().numpy()
+    return events
 
 
 def _numpy(value):

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from evseg_torch import CascadedSegmenter, EventFormatError, Segmentation
-from evseg_torch.errors import ConfigError
-from evseg_torch.events import to_array
+from evseg_torch.errors import ConfigError, ModelError
+from evseg_torch.events import EventBatch, batch_windows, to_array, to_torch
 from evseg_torch.synthetic import make_scene
 
 SIZE = (90, 120)
@@ -136,3 +136,58 @@ def test_bad_input_raises_our_error():
         CascadedSegmenter(sensor_size=SIZE)(np.array([[0.002, 1, 1, 1], [0.001, 2, 2, 0]]))
     with pytest.raises(EventFormatError, match="sensor_size"):
         CascadedSegmenter(sensor_size=(0, 5))
+
+
+def test_tensor_input_gives_the_same_segmentation_as_tensors(scene, result, device):
+    segmenter = CascadedSegmenter(sensor_size=SIZE).to(device)
+    rows = torch.as_tensor(to_array(scene.events), device=device)
+    before = rows.clone()
+    out = segmenter(rows)
+    assert torch.equal(rows, before)
+    for name in ("labels", "models", "warped_xy", "iwes"):
+        value = getattr(out, name)
+        assert isinstance(value, torch.Tensor) and value.device.type == device.type, name
+    np.testing.assert_array_equal(out.labels.cpu().numpy(), result.labels)
+    np.testing.assert_allclose(out.models.cpu().numpy(), result.models, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(out.warped_xy.cpu().numpy(), result.warped_xy, rtol=1e-6, atol=1e-4)
+
+
+def test_event_batches_one_window_or_padded(scene, result):
+    segmenter = CascadedSegmenter(sensor_size=SIZE)
+    window = to_torch(scene.events)
+    single = segmenter(window)
+    np.testing.assert_array_equal(single.labels.numpy(), result.labels)
+    half = to_torch(scene.events[: len(scene.events) // 2])
+    both = segmenter(batch_windows([window, half]))
+    assert isinstance(both, list) and len(both) == 2
+    np.testing.assert_array_equal(both[0].labels.numpy(), result.labels)
+    alone = segmenter(half)
+    np.testing.assert_array_equal(both[1].labels.numpy(), alone.labels.numpy())
+    with pytest.raises(ModelError, match="stack per window"):
+        segmenter(batch_windows([window, half]), initial_models=[torch.zeros(1, 4)])
+
+
+def test_event_batch_with_fractional_pixels_is_refused(scene):
+    window = to_torch(scene.events)
+    shifted = EventBatch(window.xy + 0.5, window.t, window.p)
+    with pytest.raises(EventFormatError, match="integer"):
+        CascadedSegmenter(sensor_size=SIZE)(shifted)
+
+
+def test_given_models_replace_or_augment_level_one(scene, result):
+    proposals = torch.as_tensor(np.stack([motion.params for motion in scene.motions]), dtype=torch.float32)
+    replaced = CascadedSegmenter(sensor_size=SIZE, initial_models="replace")(
+        scene.events, initial_models=proposals
+    )
+    assert len(replaced.feature_tracks) == 0
+    np.testing.assert_allclose(replaced.level_one_models, proposals.numpy())
+    truth = np.where(scene.labels >= 0, scene.labels, 0)
+    assert np.mean(replaced.labels == truth) > 0.9
+    augmented = CascadedSegmenter(sensor_size=SIZE)(scene.events, initial_models=proposals)
+    assert len(augmented.feature_tracks) > 0 and len(augmented.level_one_models) >= 1
+    with pytest.raises(ModelError, match="initial_models"):
+        CascadedSegmenter(sensor_size=SIZE, initial_models="replace")(
+            scene.events, initial_models=torch.zeros(2, 3)
+        )
+    with pytest.raises(ConfigError, match="initial_models"):
+        CascadedSegmenter(sensor_size=SIZE, initial_models="skip")
