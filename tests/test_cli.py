@@ -2,6 +2,7 @@ import json
 import subprocess
 import sys
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -295,7 +296,9 @@ def test_evaluate_labelled(tmp_path, capsys):
     assert summary["scenes"] == 2
     assert summary["accuracy"] == pytest.approx(np.mean([f["accuracy"] for f in files]))
     assert summary["abs_count_error"] == np.mean([abs(f["count_error"]) for f in files])
-    assert lines[3].split()[0] == "mean" and float(lines[3].split()[3]) == round(summary["accuracy"], 3)
+    assert lines[0].split()[:3] == ["file", "method", "events"]
+    assert [line.split()[1] for line in lines[1:4]] == ["evseg"] * 3 and result["method"] == "evseg"
+    assert lines[3].split()[0] == "mean" and float(lines[3].split()[4]) == round(summary["accuracy"], 3)
     assert lines[4].startswith(f"mean: accuracy {summary['accuracy']:.3f}, IMO IoU {summary['iou']:.3f}")
 
 
@@ -328,3 +331,117 @@ def _labels_cut(tmp_path):
 def test_evaluate_labelled_bad_input(tmp_path, capsys, make, args, message):
     assert main(["--quiet", "evaluate", "labelled", str(make(tmp_path)), *args]) == 2
     assert message in _error_line(capsys)
+
+
+PROBE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "synthetic_probe"
+
+
+def _truth_as_predictions(folder, paths):
+    """Each labelled file's own labels, written as ``folder/<stem>.npy``."""
+    folder.mkdir(exist_ok=True)
+    for path in paths:
+        np.save(folder / f"{path.stem}.npy", np.load(path)["label"])
+    return folder
+
+
+@pytest.mark.skipif(not PROBE.is_dir(), reason="../shared/data/synthetic_probe is not beside the repository")
+def test_evaluate_labelled_predictions(tmp_path, capsys):
+    paths = [PROBE / "scene_200.npz", PROBE / "scene_205.npz"]
+    folder = _truth_as_predictions(tmp_path / "truth", paths)
+    out = tmp_path / "scores.json"
+    command = ["--quiet", "evaluate", "labelled", *map(str, paths), "--predictions"]
+    assert main([*command, str(folder), "--json", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == [
+        "file",
+        "method",
+        "events",
+        "IMOs",
+        "accuracy",
+        "IoU",
+        "detect",
+        "count",
+        "ms",
+    ]
+    assert [line.split()[:2] for line in lines[1:4]] == [
+        ["scene_200", "truth"],
+        ["scene_205", "truth"],
+        ["mean", "truth"],
+    ]
+    assert lines[3].split()[4:] == ["1.000", "1.000", "1.00", "+0.00", "-"]
+    assert (
+        lines[4]
+        == "mean: accuracy 1.000, IMO IoU 1.000, detection 1.000, cluster-count error +0.00 (|.| 0.00)"
+    )
+    result = json.loads(out.read_text())
+    assert result["method"] == "truth" and result["summary"]["scenes"] == 2
+    assert [(f["name"], f["method"], f["accuracy"], f["iou"]) for f in result["files"]] == [
+        ("scene_200", "truth", 1.0, 1.0),
+        ("scene_205", "truth", 1.0, 1.0),
+    ]
+    # The same predictions given one per FILE, in order, under another name.
+    in_order = [str(folder / f"{path.stem}.npy") for path in paths]
+    assert main([*command, *in_order, "--method", "EV-IMO net"]) == 0
+    assert capsys.readouterr().out.splitlines()[3].startswith(f"{'mean':<20} EV-IMO net ")
+
+
+@pytest.mark.parametrize(
+    ("fields", "args", "message"),
+    [
+        (
+            lambda n: {"labels": np.zeros(n - 1, dtype=int)},
+            [],
+            "pred.npz: 'labels' must hold one integer label per",
+        ),
+        (lambda n: {"labels": np.zeros(n)}, [], "pred.npz: 'labels' must hold one integer label per event"),
+        (
+            lambda n: {"cluster": np.zeros(n, dtype=int)},
+            [],
+            "pred.npz: no per-event label field 'labels' and no",
+        ),
+        (
+            lambda n: {"labels": np.zeros(n, dtype=int)},
+            ["--prediction-field", "c"],
+            "no per-event label field 'c'",
+        ),
+        (
+            lambda n: {"masks": np.zeros((1, 90, 120), dtype=int)},
+            [],
+            "pred.npz: 'masks' needs its times in one",
+        ),
+        (
+            lambda n: {"masks": np.zeros((1, 120, 90), dtype=int), "mask_times": [0.0]},
+            [],
+            "pred.npz: masks are (120, 90) (H, W) but the sensor is (90, 120)",
+        ),
+        (
+            lambda n: {"masks": np.zeros((2, 90, 120), dtype=int), "mask_times": [0.02, 0.01]},
+            [],
+            "pred.npz: mask times must be finite and strictly increasing",
+        ),
+        (lambda n: {"labels": np.zeros(n, dtype=int)}, ["--config", "x.yaml"], "--config has no effect"),
+    ],
+)
+def test_evaluate_labelled_bad_predictions(tmp_path, capsys, fields, args, message):
+    path = _labelled_file(tmp_path, 0, 1)
+    pred = tmp_path / "pred.npz"
+    np.savez(pred, **fields(len(np.load(path)["label"])))
+    assert main(["--quiet", "evaluate", "labelled", str(path), "--predictions", str(pred), *args]) == 2
+    assert message in _error_line(capsys)
+
+
+def test_evaluate_labelled_prediction_count_and_folder(tmp_path, capsys):
+    paths = [_labelled_file(tmp_path, 0, 1), _labelled_file(tmp_path, 1, 1)]
+    folder = _truth_as_predictions(tmp_path / "net", paths[:1])
+    command = ["--quiet", "evaluate", "labelled", *map(str, paths), "--predictions"]
+    assert main([*command, str(folder / "probe_0.npy")]) == 2
+    assert "1 predictions for 2 labelled files" in _error_line(capsys)
+    assert main([*command, str(folder)]) == 2
+    assert f"{folder}: holds no prediction probe_1.npz/.npy" in _error_line(capsys)
+
+
+def test_evaluate_labelled_fails_before_any_progress(tmp_path, capsys):
+    """A bad second file is reported alone: no progress bar is drawn before the files are checked."""
+    paths = [_labelled_file(tmp_path, 0, 1), tmp_path / "missing.npz"]
+    assert main(["evaluate", "labelled", *map(str, paths)]) == 2
+    assert "missing.npz: no such file" in _error_line(capsys)

@@ -13,7 +13,9 @@ whatever label they get. Per window:
 * ``count_error``: predicted clusters minus true layers (background included).
 
 :func:`evaluate_labelled` segments each file as one window with
-:class:`~evseg_torch.pipeline.CascadedSegmenter` and scores it (``evseg evaluate labelled``).
+:class:`~evseg_torch.pipeline.CascadedSegmenter` and scores it (``evseg evaluate labelled``);
+:func:`~evseg_torch.evaluation.predictions.evaluate_predictions` scores another method's output on the
+same files through the same :func:`score_events` (``evseg evaluate labelled --predictions``).
 """
 
 from __future__ import annotations
@@ -32,7 +34,14 @@ from evseg_torch.io.numpy_files import WHAT_NPZ, open_npz
 from evseg_torch.metrics import box_iou, labelling_accuracy, match_clusters, per_object_iou
 from evseg_torch.pipeline import CascadedSegmenter
 
-__all__ = ["LabelledScore", "evaluate_labelled", "load_labelled", "percentile_box", "score_labelling"]
+__all__ = [
+    "LabelledScore",
+    "evaluate_labelled",
+    "load_labelled",
+    "percentile_box",
+    "score_events",
+    "score_labelling",
+]
 
 _NOISE = -1
 # The box of a cluster or an object spans these percentiles of its events' x and y: a few stray events
@@ -42,7 +51,11 @@ _BOX_PERCENTILES = (2.0, 98.0)
 
 @dataclass(frozen=True)
 class LabelledScore:
-    """Scores of one labelled window (see the module docstring for the definitions)."""
+    """Scores of one labelled window (see the module docstring for the definitions).
+
+    ``method`` names what labelled the events: ``"evseg"`` for the cascade, else the scored predictions'
+    method; ``time_ms`` is NaN when the labelling's time is not known.
+    """
 
     name: str
     n_events: int
@@ -52,6 +65,7 @@ class LabelledScore:
     detection: float
     count_error: int
     time_ms: float = float("nan")
+    method: str = "evseg"
 
 
 def percentile_box(xy: np.ndarray) -> np.ndarray:
@@ -71,6 +85,7 @@ def score_labelling(
     n_layers: int | None = None,
     name: str = "",
     time_ms: float = float("nan"),
+    method: str = "evseg",
 ) -> LabelledScore:
     """Score predicted clusters against true layers.
 
@@ -80,6 +95,7 @@ def score_labelling(
         xy: event pixel coordinates :math:`(N, 2)` (x the column, y the row), for the detection boxes.
         ignore: events left out of every metric, bool :math:`(N,)`; ``None`` for none.
         n_layers: true layers including the background (default: the distinct labels >= 0 of ``gt``).
+        name, time_ms, method: copied into the score.
 
     Returns:
         :class:`LabelledScore`.
@@ -123,7 +139,33 @@ def score_labelling(
         detection=float(np.mean(detected)) if objects else float("nan"),
         count_error=int(clusters - n_layers),
         time_ms=float(time_ms),
+        method=method,
     )
+
+
+def score_events(
+    pred: np.ndarray,
+    events: np.ndarray,
+    labels: np.ndarray,
+    ignore: np.ndarray | None,
+    *,
+    name: str = "",
+    time_ms: float = float("nan"),
+    method: str = "evseg",
+) -> LabelledScore:
+    """Score a labelling of a labelled file's events, as :func:`load_labelled` returns them.
+
+    Args:
+        pred: predicted cluster of each event, :math:`(N,)`; negative values are unassigned.
+        events: canonical events :math:`(N,)`; their ``x`` and ``y`` place the detection boxes.
+        labels, ignore: the file's true layers :math:`(N,)` and ignore mask :math:`(N,)` or ``None``.
+        name, time_ms, method: copied into the score.
+
+    Returns:
+        :class:`LabelledScore`.
+    """
+    xy = np.column_stack([events["x"], events["y"]])
+    return score_labelling(pred, labels, xy, ignore=ignore, name=name, time_ms=time_ms, method=method)
 
 
 def load_labelled(
@@ -194,15 +236,20 @@ def evaluate_labelled(
     sensor_size: tuple[int, int] | None = None,
     label_field: str = "label",
     ignore_field: str | None = "ambiguous",
+    method: str = "evseg",
     progress: bool = False,
 ) -> list[LabelledScore]:
     """Segment each labelled file as one window and score it.
+
+    Every file is read and checked before the first is segmented, so a bad file fails at once, before
+    any progress output (labelled files are single windows, small enough to hold together).
 
     Args:
         paths: labelled ``.npz`` files (see :func:`load_labelled`).
         config: the pipeline's config; defaults to the built-in defaults.
         sensor_size: ``(H, W)`` of every file; default from each file.
         label_field, ignore_field: as in :func:`load_labelled`.
+        method: the name of the scores' method.
         progress: show a progress bar.
 
     Returns:
@@ -213,20 +260,22 @@ def evaluate_labelled(
     """
     from tqdm.auto import tqdm
 
+    cases = [
+        (Path(path), *load_labelled(path, sensor_size, label_field=label_field, ignore_field=ignore_field))
+        for path in paths
+    ]
     scores = []
-    for path in tqdm(list(paths), desc="files", disable=not progress):
-        events, labels, ignore, size = load_labelled(
-            path, sensor_size, label_field=label_field, ignore_field=ignore_field
-        )
+    for path, events, labels, ignore, size in tqdm(cases, desc="files", disable=not progress):
         result = CascadedSegmenter(size, config)(events)
         scores.append(
-            score_labelling(
+            score_events(
                 result.labels,
+                events,
                 labels,
-                np.column_stack([events["x"], events["y"]]),
-                ignore=ignore,
-                name=Path(path).stem,
+                ignore,
+                name=path.stem,
                 time_ms=result.timings_ms["total"],
+                method=method,
             )
         )
     return scores

@@ -187,3 +187,28 @@ def test_evaluate_labelled_segments_each_file(tmp_path, monkeypatch):
     # object 2 (IoU 2 / 3) and object 1 is missed.
     assert scores[1].accuracy == pytest.approx(4 / 5) and scores[1].iou == pytest.approx(1 / 3)
     assert scores[1].count_error == -1 and scores[1].n_objects == 2
+
+
+def test_evaluate_labelled_checks_every_file_before_segmenting(tmp_path, monkeypatch):
+    """A bad file fails before any file is segmented (and before any progress output)."""
+    built = []
+    monkeypatch.setattr(labelled, "CascadedSegmenter", lambda sensor_size, config: built.append(sensor_size))
+    with pytest.raises(ReaderError, match="no per-event label field"):
+        evaluate_labelled(
+            [_write(tmp_path / "good.npz"), _write(tmp_path / "bad.npz", label=None)], progress=True
+        )
+    assert built == []
+
+
+def test_evaluate_labelled_names_the_method(tmp_path, monkeypatch):
+    class AllBackground:
+        def __init__(self, sensor_size, config):
+            pass
+
+        def __call__(self, events):
+            return SimpleNamespace(labels=np.zeros(len(events), dtype=int), timings_ms={"total": 1.0})
+
+    monkeypatch.setattr(labelled, "CascadedSegmenter", AllBackground)
+    path = _write(tmp_path / "a.npz")
+    assert evaluate_labelled([path])[0].method == "evseg"
+    assert evaluate_labelled([path], method="evseg-fast")[0].method == "evseg-fast"
