@@ -7,25 +7,35 @@ from evseg_torch.level_two.contrast import (
     contrast_loss,
     image_variance,
     normalized_variance,
+    padded_contrast_loss,
 )
 from evseg_torch.level_two.data_term import DataCost, data_cost, sample_bilinear
 from evseg_torch.level_two.graph import event_graph, pixel_adjacency, site_graph
 from evseg_torch.level_two.iwe import ImageOfWarpedEvents, splat_events, warp_events, warped_iwe
-from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter, LevelTwoResult
+from evseg_torch.level_two.multi_model_loss import MultiModelContrastLoss, multi_model_contrast_loss
+from evseg_torch.level_two.segmenter import (
+    DEFAULT_SOFT_TEMPERATURE,
+    GraphCutContrastSegmenter,
+    LevelTwoResult,
+)
 
 __all__ = [
     "CONTRAST_OBJECTIVES",
+    "DEFAULT_SOFT_TEMPERATURE",
     "ContrastLoss",
     "ContrastMaximization",
     "DataCost",
     "GraphCutContrastSegmenter",
     "ImageOfWarpedEvents",
     "LevelTwoResult",
+    "MultiModelContrastLoss",
     "contrast_loss",
     "data_cost",
     "event_graph",
     "image_variance",
+    "multi_model_contrast_loss",
     "normalized_variance",
+    "padded_contrast_loss",
     "pixel_adjacency",
     "sample_bilinear",
     "site_graph",

@@ -233,6 +233,89 @@ def _contrast_loss(
     return -contrast_fn(splat_events(warp.warped(params), sensor_size, weights, sigma), reference)
 
 
+def padded_contrast_loss(
+    model: MotionModel,
+    events: EventBatch,
+    params: Tensor,
+    weights: Tensor | None = None,
+    *,
+    sensor_size: tuple[int, int] | None = None,
+    objective: str = "variance",
+    sigma: float = 1.0,
+    collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
+) -> Tensor:
+    r""":func:`contrast_loss` of every window of a padded batch at once, padding weighted 0.
+
+    The windows' events are laid out as :math:`(B, 1, N_{max})`, shared by the K clusters of their
+    window, so the warp is linearised once per window and all :math:`B K` images come from one splat.
+
+    Args:
+        model: the motion model.
+        events: a padded batch (:func:`~evseg_torch.events.batch_windows`), ``xy`` :math:`(B, N_{max}, 2)`.
+        params: :math:`(B, K, P)`.
+        weights: :math:`(B, K, N_{max})`, or ``None`` for 1 on every real event; padding counts 0 whatever
+            its weight holds.
+        sensor_size: ``(H, W)``; defaults to ``model.sensor_size``.
+        objective: a key of :data:`CONTRAST_OBJECTIVES`.
+        sigma: Gaussian blur of the IWEs in pixels.
+        collapse_weight: exponent γ of the event-collapse guard; 0 switches it off.
+
+    Returns:
+        :math:`(B, K)`; row ``b`` equals :func:`contrast_loss` of window ``b`` alone. Differentiable with
+        respect to ``params``, ``weights`` and ``events.xy``.
+
+    Raises:
+        ConfigError: for an unknown objective or a negative ``collapse_weight``.
+        ShapeError: if the shapes do not fit together or ``events`` is not a padded batch.
+
+    Examples:
+        >>> from evseg_torch.events import batch_windows
+        >>> from evseg_torch.motion import Affine4
+        >>> one = EventBatch(torch.rand(50, 2) * 7, torch.rand(50) * 0.01, torch.ones(50))
+        >>> two = EventBatch(torch.rand(30, 2) * 7, torch.rand(30) * 0.01, torch.ones(30))
+        >>> padded_contrast_loss(Affine4((8, 8)), batch_windows([one, two]), torch.zeros(2, 3, 4)).shape
+        torch.Size([2, 3])
+    """
+    contrast_fn = _objective(objective)
+    if not collapse_weight >= 0:
+        raise ConfigError(f"collapse_weight must be >= 0, got {collapse_weight}")
+    _check_padded(events)
+    batch, longest = events.t.shape
+    if params.ndim != 3 or params.shape[0] != batch or params.shape[2] != model.n_params:
+        raise ShapeError(
+            f"params must be (B, K, {model.n_params}) with B = {batch} windows for the {model.name} model, "
+            f"got {tuple(params.shape)}"
+        )
+    if weights is not None and weights.shape != (batch, params.shape[1], longest):
+        raise ShapeError(
+            f"weights must be (B, K, N_max) = {(batch, params.shape[1], longest)}, got {tuple(weights.shape)}"
+        )
+    sensor_size = sensor_size or model.sensor_size
+    mask = events.mask[:, None]
+    # where, not a product: padding must count 0 even where a caller's padded weights hold NaN.
+    weights = mask.to(events.xy.dtype) if weights is None else torch.where(mask, weights, 0.0)
+    shared = EventBatch(events.xy[:, None], events.t[:, None], events.p[:, None])
+    reference = None
+    if objective in _USES_REFERENCE:
+        reference = splat_events(shared.xy, sensor_size, weights, sigma)
+    warp = _LinearWarp.build(model, shared, with_area=collapse_weight > 0)
+    return _contrast_loss(warp, params, weights, sensor_size, contrast_fn, sigma, collapse_weight, reference)
+
+
+def _check_padded(events: EventBatch) -> None:
+    if not isinstance(events, EventBatch) or not events.is_batched:
+        raise ShapeError("events must be a padded batch of windows (EventBatch with lengths)")
+    if (
+        events.t.ndim != 2
+        or events.xy.shape != (*events.t.shape, 2)
+        or events.lengths.shape != (events.t.shape[0],)
+    ):
+        raise ShapeError(
+            "a padded batch must hold xy (B, N_max, 2), t (B, N_max) and lengths (B,), got "
+            f"{tuple(events.xy.shape)}, {tuple(events.t.shape)} and {tuple(events.lengths.shape)}"
+        )
+
+
 def warp_area_element(model: MotionModel, events: EventBatch, params: Tensor) -> Tensor:
     r"""Area element ``det(dx'/dx)`` of the warp at each event: 1 keeps areas, near 0 collapses them.
 
@@ -271,17 +354,27 @@ class ContrastLoss(nn.Module):
     Shape:
         - One window: ``events`` an :class:`EventBatch` of N events, ``params`` :math:`(K, P)`,
           ``weights`` :math:`(K, N)`, :math:`(N,)` or ``None``; unreduced output :math:`(K,)`.
-        - A batch of B windows: ``events`` a sequence of B :class:`EventBatch` (their event counts may
+        - A padded batch of B windows (:func:`~evseg_torch.events.batch_windows`): ``events`` of
+          :math:`(B, N_{max})` events, ``params`` :math:`(B, K, P)`, ``weights`` :math:`(B, K, N_{max})` or
+          ``None``, padding weighted 0 either way; unreduced output :math:`(B, K)`. All windows are
+          evaluated at once, as tensors.
+        - A list of B windows: ``events`` a sequence of B :class:`EventBatch` (their event counts may
           differ), ``params`` :math:`(B, K, P)`, ``weights`` ``None`` or a sequence of B per-window
           weights; unreduced output :math:`(B, K)`. Windows are evaluated one after the other.
         - Reduced output: a scalar.
 
     Examples:
+        >>> from evseg_torch.events import batch_windows
         >>> from evseg_torch.motion import Translation
         >>> events = EventBatch(torch.rand(50, 2) * 7, torch.rand(50) * 0.01, torch.ones(50))
         >>> loss = ContrastLoss(Translation((8, 8)))
         >>> loss([events, events], torch.zeros(2, 3, 2)).shape
         torch.Size([])
+        >>> fewer = EventBatch(events.xy[:20], events.t[:20], events.p[:20])
+        >>> ContrastLoss(Translation((8, 8)), reduction="none")(
+        ...     batch_windows([events, fewer]), torch.zeros(2, 3, 2)
+        ... ).shape
+        torch.Size([2, 3])
     """
 
     def __init__(
@@ -311,7 +404,23 @@ class ContrastLoss(nn.Module):
         params: Tensor,
         weights: Tensor | Sequence[Tensor | None] | None = None,
     ) -> Tensor:
-        if isinstance(events, EventBatch):
+        if isinstance(events, EventBatch) and events.is_batched:
+            if weights is not None and not isinstance(weights, Tensor):
+                raise ShapeError(
+                    f"for a padded batch weights must be a tensor (B, K, N_max) or None, got "
+                    f"{type(weights).__name__}"
+                )
+            loss = padded_contrast_loss(
+                self.model,
+                events,
+                params,
+                weights,
+                sensor_size=self.sensor_size,
+                objective=self.objective,
+                sigma=self.sigma,
+                collapse_weight=self.collapse_weight,
+            )
+        elif isinstance(events, EventBatch):
             loss = self._window(events, params, weights)
         else:
             if params.ndim != 3 or params.shape[0] != len(events):

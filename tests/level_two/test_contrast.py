@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from evseg_torch.errors import ConfigError, ShapeError
-from evseg_torch.events import EventBatch
+from evseg_torch.events import EventBatch, batch_windows
 from evseg_torch.level_two.contrast import (
     CONTRAST_OBJECTIVES,
     ContrastLoss,
@@ -14,6 +14,7 @@ from evseg_torch.level_two.contrast import (
     gather_members,
     image_variance,
     normalized_variance,
+    padded_contrast_loss,
     warp_area_element,
 )
 from evseg_torch.level_two.iwe import splat_events
@@ -36,6 +37,11 @@ def _small_events(n=20, seed=0):
     xy = 2.0 + torch.rand(n, 2, generator=generator, dtype=torch.float64) * 3.0
     t = torch.rand(n, generator=generator, dtype=torch.float64) * 0.05
     return EventBatch(xy, t, torch.ones(n, dtype=torch.float64))
+
+
+def _concatenated(windows):
+    """The events of several single windows as one window (a batch's ``lengths`` is no event field)."""
+    return EventBatch(*(torch.cat([getattr(w, name) for w in windows]) for name in ("xy", "t", "p")))
 
 
 def _scene(name, seed=0, integer=True, n_points=6000, n_segments=20, dtype=torch.float64, device="cpu"):
@@ -146,6 +152,51 @@ class TestContrastLoss:
         with pytest.raises(ConfigError, match="reduction"):
             ContrastLoss(model, reduction="max")
 
+    @pytest.mark.parametrize("objective", sorted(CONTRAST_OBJECTIVES))
+    def test_padded_batch_equals_list(self, objective):
+        model = Affine4((8, 8))
+        windows = [_small_events(20, seed=0), _small_events(9, seed=1), _small_events(14, seed=2)]
+        params = torch.rand(3, 2, 4, dtype=torch.float64)
+        loss = ContrastLoss(model, objective=objective, reduction="none")
+        batch = batch_windows(windows)
+        torch.testing.assert_close(loss(batch, params), loss(windows, params))
+        weights = [torch.rand(2, len(w), dtype=torch.float64) for w in windows]
+        # Padding counts 0 whatever its weights hold, NaN included.
+        padded = torch.full((3, 2, 20), float("nan"), dtype=torch.float64)
+        for row, own in enumerate(weights):
+            padded[row, :, : own.shape[1]] = own
+        torch.testing.assert_close(loss(batch, params, padded), loss(windows, params, weights))
+        torch.testing.assert_close(
+            padded_contrast_loss(model, batch, params, padded, objective=objective),
+            loss(batch, params, padded),
+        )
+
+    def test_padded_batch_gradcheck(self):
+        model = Affine4((8, 8))
+        batch = batch_windows([_small_events(12, seed=0), _small_events(7, seed=1)])
+        params = torch.rand(2, 2, 4, dtype=torch.float64, requires_grad=True)
+        weights = torch.rand(2, 2, 12, dtype=torch.float64, requires_grad=True)
+        assert torch.autograd.gradcheck(
+            lambda p, w: padded_contrast_loss(model, batch, p, w, objective="normalized_variance"),
+            (params, weights),
+            fast_mode=True,
+        )
+
+    def test_padded_batch_exception(self):
+        model = Affine4((8, 8))
+        batch = batch_windows([_small_events(12, seed=0), _small_events(7, seed=1)])
+        loss = ContrastLoss(model, reduction="none")
+        with pytest.raises(ShapeError, match=r"params must be \(B, K, 4\) with B = 2"):
+            loss(batch, torch.zeros(3, 2, 4, dtype=torch.float64))
+        with pytest.raises(ShapeError, match=r"params must be \(B, K, 4\)"):
+            loss(batch, torch.zeros(2, 2, 3, dtype=torch.float64))
+        with pytest.raises(ShapeError, match=r"weights must be \(B, K, N_max\) = \(2, 2, 12\)"):
+            loss(batch, torch.zeros(2, 2, 4, dtype=torch.float64), torch.ones(2, 2, 7, dtype=torch.float64))
+        with pytest.raises(ShapeError, match="weights must be a tensor"):
+            loss(batch, torch.zeros(2, 2, 4, dtype=torch.float64), [None, None])
+        with pytest.raises(ShapeError, match="padded batch"):
+            padded_contrast_loss(model, _small_events(), torch.zeros(1, 2, 4, dtype=torch.float64))
+
 
 class TestCollapseGuard:
     def test_area_element(self):
@@ -209,7 +260,7 @@ class TestContrastMaximization:
             )
             for truth, box in zip(truths, [(0.05, 0.2, 0.5, 0.8), (0.5, 0.2, 0.95, 0.8)], strict=True)
         ]
-        events = EventBatch(*(torch.cat(parts) for parts in zip(*batches, strict=True)))
+        events = _concatenated(batches)
         labels = torch.cat([torch.full((len(b),), k) for k, b in enumerate(batches)])
         weights = torch.nn.functional.one_hot(labels, 2).T.double()
         cmax = ContrastMaximization(model, max_iter=50)
@@ -268,7 +319,7 @@ def _corner_and_sensor(seed=0, corner=True):
         )
         for truth, box, (n, s) in list(zip(truths, boxes, shapes, strict=True))[:count]
     ]
-    events = EventBatch(*(torch.cat(parts) for parts in zip(*batches, strict=True)))
+    events = _concatenated(batches)
     labels = torch.cat([torch.full((len(b),), k) for k, b in enumerate(batches)])
     order = torch.as_tensor(rng.permutation(len(labels)))
     events = EventBatch(events.xy[order], events.t[order], events.p[order])

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
-from evseg_torch.events import EventBatch, to_torch
+from evseg_torch.events import EventBatch, batch_windows, to_torch
 from evseg_torch.graphcut.alpha_expansion import labeling_energy
 from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter, LevelTwoResult
@@ -124,6 +124,53 @@ class TestGraphCutContrastSegmenter:
             assert result.energy_history == single.energy_history
         shared = segmenter([events, events], _pool(flows))
         torch.testing.assert_close(shared[0].labels, shared[1].labels)
+        # A padded batch with one pool per window, (B, K, P), gives the list's results.
+        padded = segmenter(batch_windows([events, other]), torch.stack([_pool(flows), _pool(other_flows)]))
+        assert isinstance(padded, list) and len(padded) == 2
+        for result, listed in zip(padded, batch, strict=True):
+            torch.testing.assert_close(result.labels, listed.labels)
+            torch.testing.assert_close(result.params, listed.params)
+            torch.testing.assert_close(result.soft_assignments, listed.soft_assignments)
+            assert result.energy_history == listed.energy_history
+
+    def test_padded_batch_with_initial_labels(self, two_layers):
+        events, labels, flows = two_layers
+        fewer = EventBatch(events.xy[:1500], events.t[:1500], events.p[:1500])
+        segmenter = _segmenter(n_iter_segmentation=1, discovery_rounds=0)
+        init = [torch.as_tensor(labels), torch.as_tensor(labels[:1500])]
+        listed = segmenter([events, fewer], _pool(flows), init)
+        padded_labels = torch.full((2, len(events)), 99)  # padding holds labels no model has
+        padded_labels[0], padded_labels[1, :1500] = init
+        padded = segmenter(batch_windows([events, fewer]), _pool(flows), padded_labels)
+        for result, single in zip(padded, listed, strict=True):
+            torch.testing.assert_close(result.labels, single.labels)
+            torch.testing.assert_close(result.params, single.params)
+        with pytest.raises(ShapeError, match=r"\(B, N_max\)"):
+            segmenter(batch_windows([events, fewer]), _pool(flows), padded_labels[:, :10])
+        with pytest.raises(ShapeError, match="2 windows but 3 pools"):
+            segmenter(batch_windows([events, fewer]), _pool(flows).expand(3, -1, -1))
+
+    def test_soft_assignments_reuse_the_last_data_cost(self, two_layers):
+        events, _, flows = two_layers
+        segmenter = _segmenter(soft_temperature=40.0)
+        calls = []
+        data_term = segmenter.data_term.forward
+
+        def recorded(events, params):
+            calls.append((params.clone(), data_term(events, params)))
+            return calls[-1][1]
+
+        segmenter.data_term.forward = recorded
+        result = segmenter(events, _pool(flows))
+        soft = result.soft_assignments
+        assert soft.shape == (len(events), result.params.shape[0]) and soft.dtype == events.xy.dtype
+        torch.testing.assert_close(soft.sum(dim=1), torch.ones(len(events)))
+        # One data-term pass per labelling, none more; the last labelling's pool holds the final models
+        # (here with the discovery proposals it rejected), and its costs give the soft assignments.
+        assert len(calls) == len(result.energy_history)
+        pool, cost = calls[-1]
+        keep = [int(torch.nonzero((pool == row).all(dim=1))[0, 0]) for row in result.params]
+        torch.testing.assert_close(soft, torch.softmax(-cost[:, keep] / 40.0, dim=1))
 
     def test_single_cluster_stops(self, two_layers):
         events, _, flows = two_layers
@@ -147,6 +194,8 @@ class TestGraphCutContrastSegmenter:
         result = _segmenter()(events.to(device), _pool(flows).to(device))
         assert result.labels.device.type == device.type and result.params.device.type == device.type
         assert labelling_accuracy(result.labels.cpu().numpy(), labels) > 0.95
+        assert result.soft_assignments.device.type == device.type
+        torch.testing.assert_close(result.soft_assignments.sum(dim=1).cpu(), torch.ones(len(events)))
 
     def test_learning_through_contrast_loss(self, two_layers):
         # A tiny network predicts both layers' flows from a fixed input; trained through the contrast loss.
@@ -224,6 +273,9 @@ class TestGraphCutContrastSegmenter:
             GraphCutContrastSegmenter("translation", (10, 10), site_time_slices=0)
         with pytest.raises(ConfigError, match="warm_max_iter"):
             GraphCutContrastSegmenter("translation", (10, 10), warm_max_iter=0)
+        for temperature in (0.0, -1.0, float("nan"), float("inf")):
+            with pytest.raises(ConfigError, match="soft_temperature must be a finite number > 0"):
+                GraphCutContrastSegmenter("translation", (10, 10), soft_temperature=temperature)
 
     @pytest.mark.parametrize("site_time_slices", [1, 3])
     def test_sites_share_labels(self, two_layers, site_time_slices):
@@ -308,6 +360,21 @@ class TestDiscovery:
         assert result.labels.min() >= 0 and len(sizes) == n_clusters  # labels index the params
         assert torch.all(sizes > 0) and torch.all(sizes[:-1] >= sizes[1:])  # renumbered by size
         assert result.iwes.shape == (n_clusters, *DISCOVERY_SIZE)
+
+    def test_soft_assignments_agree_with_labels(self):
+        # Measured 0.83 of the events (the argmax ignores the Potts term, which decides the rest).
+        scene = make_scene(DISCOVERY_SIZE, 0.03, n_objects=1, rng=0)
+        model = scene.motions[0].model
+        truth = np.stack([motion.params for motion in scene.motions])
+        rng = np.random.default_rng(100)
+        pool = truth + rng.normal(0, 1.0, truth.shape) / model.displacement_scale(0.03)
+        segmenter = GraphCutContrastSegmenter(model, DISCOVERY_SIZE)
+        result = segmenter(to_torch(scene.events), torch.as_tensor(pool, dtype=torch.float32))
+        soft = result.soft_assignments
+        assert soft.shape == (len(scene.events), result.params.shape[0]) == (len(scene.events), 2)
+        torch.testing.assert_close(soft.sum(dim=1), torch.ones(len(scene.events)))
+        assert (soft.argmax(dim=1) == result.labels).float().mean() >= 0.8
+        assert "soft_temperature=20.0" in repr(segmenter)
 
     def test_label_cost_scales_with_the_window(self, two_layers):
         segmenter = _segmenter(lambda_label=3000.0, label_cost_events=5000.0)
