@@ -170,6 +170,9 @@ class LevelTwoConfig:
         discovery_min_gain: a proposal is kept only if it raises its region's contrast by at least this
             fraction over the region's own cluster's model (0: it must not lower it).
         discovery_max_iter: optimiser iterations of each proposal's contrast-maximisation fit.
+        soft_temperature: temperature of the per-event soft assignments, a softmax of the negative data
+            cost (units of the cost, 0-255); 20 is calibrated on synthetic scenes (see
+            :data:`~evseg_torch.level_two.segmenter.DEFAULT_SOFT_TEMPERATURE`).
     """
 
     lambda_data: float = 1.0
@@ -195,6 +198,7 @@ class LevelTwoConfig:
     discovery_max_proposals: int = 8
     discovery_min_gain: float = 0.0
     discovery_max_iter: int = 20
+    soft_temperature: float = 20.0
 
 
 @dataclass(frozen=True)

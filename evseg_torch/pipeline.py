@@ -36,9 +36,10 @@ _MAX_PIXELS = 1 << 24
 class Segmentation:
     """The result of segmenting one window.
 
-    ``labels``, ``models``, ``warped_xy`` and ``iwes`` are NumPy arrays, or torch tensors on the
-    segmenter's device when it was given a tensor or an :class:`~evseg_torch.events.EventBatch` (the
-    dtypes below are then the module's); everything else is NumPy either way.
+    ``labels``, ``models``, ``warped_xy``, ``iwes`` and ``soft_assignments`` are NumPy arrays, or torch
+    tensors on the segmenter's device when it was given a tensor or an
+    :class:`~evseg_torch.events.EventBatch` (the dtypes below are then the module's); everything else
+    is NumPy either way.
 
     Attributes:
         labels: cluster of each event in input order, int64 :math:`(N,)`; ``-1`` only for events
@@ -52,6 +53,10 @@ class Segmentation:
         feature_labels: level one's cluster of each correspondence, ``-1`` for outliers, :math:`(M,)`.
         level_one_models: level one's model pool, :math:`(M_1, P)`, before level two.
         iwes: each cluster's compensated image of its own events, :math:`(K, H, W)`.
+        soft_assignments: each event's probability of each cluster, :math:`(N, K)`: a softmax of level
+            two's negative data cost at ``level_two.soft_temperature`` (for distillation; the labels
+            come from the graph cut, which also weighs the neighbours, and differ on about a fifth of
+            the events).
         energy_history: level two's energy after each labelling.
         timings_ms: milliseconds spent in ``features``, ``level_one``, ``level_two`` and ``total``.
         sensor_size: ``(H, W)``.
@@ -69,6 +74,7 @@ class Segmentation:
     feature_labels: np.ndarray
     level_one_models: np.ndarray
     iwes: np.ndarray
+    soft_assignments: np.ndarray
     energy_history: tuple[float, ...]
     timings_ms: dict[str, float]
     sensor_size: tuple[int, int]
@@ -146,6 +152,7 @@ class CascadedSegmenter(nn.Module):
             discovery_max_proposals=two.discovery_max_proposals,
             discovery_min_gain=two.discovery_min_gain,
             discovery_max_iter=two.discovery_max_iter,
+            soft_temperature=two.soft_temperature,
         )
         # Follows .to(device) and .double(), so level two runs where the caller put the module.
         self.register_buffer("_anchor", torch.zeros(0), persistent=False)
@@ -251,9 +258,9 @@ class CascadedSegmenter(nn.Module):
             two = self.level_two(batch, torch.as_tensor(pool, device=device, dtype=dtype))
             own = two.params[two.labels]
             warped = warp_events(self.motion, batch.xy[:, None], batch.t[:, None], own)[:, 0]
-        labels, models, iwes = two.labels, two.params, two.iwes
+        labels, models, iwes, soft = two.labels, two.params, two.iwes, two.soft_assignments
         if not as_tensors:
-            labels, iwes = _numpy(labels), _numpy(iwes)
+            labels, iwes, soft = _numpy(labels), _numpy(iwes), _numpy(soft)
             models, warped = _numpy(models).astype(np.float64), _numpy(warped).astype(np.float64)
         end = time.perf_counter()
         return Segmentation(
@@ -266,6 +273,7 @@ class CascadedSegmenter(nn.Module):
             feature_labels=np.asarray(fitted.labels, dtype=np.int64),
             level_one_models=np.asarray(fitted.params, dtype=np.float64),
             iwes=iwes,
+            soft_assignments=soft,
             energy_history=tuple(two.energy_history),
             timings_ms={
                 "features": 1e3 * (after_features - start),

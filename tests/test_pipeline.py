@@ -34,6 +34,8 @@ def test_result_contract(scene, result):
     assert len(result.feature_labels) == len(result.feature_tracks)
     assert set(result.timings_ms) == {"features", "level_one", "level_two", "total"}
     assert result.iwes.shape == (result.n_clusters, *SIZE)
+    assert result.soft_assignments.shape == (n, result.n_clusters)
+    np.testing.assert_allclose(result.soft_assignments.sum(axis=1), 1.0, rtol=1e-5)
 
 
 def test_warped_positions_use_each_events_own_model(scene, result):
@@ -144,7 +146,7 @@ def test_tensor_input_gives_the_same_segmentation_as_tensors(scene, result, devi
     before = rows.clone()
     out = segmenter(rows)
     assert torch.equal(rows, before)
-    for name in ("labels", "models", "warped_xy", "iwes"):
+    for name in ("labels", "models", "warped_xy", "iwes", "soft_assignments"):
         value = getattr(out, name)
         assert isinstance(value, torch.Tensor) and value.device.type == device.type, name
     np.testing.assert_array_equal(out.labels.cpu().numpy(), result.labels)

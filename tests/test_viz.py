@@ -52,6 +52,7 @@ def test_fig1_panels(tmp_path, ground_truth):
         feature_labels=np.array([0]),
         level_one_models=np.zeros((1, 2)),
         iwes=np.zeros((2, 4, 5)),
+        soft_assignments=np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 1.0]]),
         energy_history=(1.0,),
         timings_ms={},
         sensor_size=(4, 5),
