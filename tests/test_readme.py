@@ -3,6 +3,8 @@
 import re
 from pathlib import Path
 
+import pytest
+
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
@@ -11,3 +13,15 @@ def test_quickstart_runs(capsys):
     assert blocks, "the README has no Python quickstart"
     exec(compile(blocks[0], "README.md", "exec"), {})
     assert "accuracy" in capsys.readouterr().out
+
+
+def test_learning_pipelines_example_runs(capsys, monkeypatch):
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.DOTALL)
+    example = next(block for block in blocks if "MultiModelContrastLoss" in block)
+    root = README.parent
+    if not (root.parent / "shared" / "data" / "synthetic_probe").is_dir():
+        pytest.skip("the probe scenes are not beside the repository")
+    monkeypatch.chdir(root)  # the example names the data relative to the repository
+    exec(compile(example, "README.md", "exec"), {})
+    loss, *shapes = capsys.readouterr().out.split(maxsplit=1)
+    assert float(loss) < 0 and "torch.Size([3, 2, 4])" in shapes[0]
