@@ -126,11 +126,10 @@ def to_array(events: np.ndarray) -> np.ndarray:
 def window_ranges_by_time(
     t_us: np.ndarray, window_ms: float, stride_ms: float | None = None, start_us: int | None = None
 ) -> np.ndarray:
-    """Index ranges of fixed-duration windows over sorted timestamps.
+    """Index ranges of fixed-duration windows over sorted timestamps, as :class:`TimeWindowIndex` cuts them.
 
     Window ``i`` covers ``[start + i*stride, start + i*stride + window)``. Only windows that start
-    at or before the last timestamp are returned, so a stream can be processed chunk by chunk by
-    passing each chunk's timestamps with an explicit ``start_us``.
+    at or before the last timestamp are returned, empty ones (gaps) included.
 
     Args:
         t_us: sorted timestamps in microseconds, :math:`(N,)`.
@@ -140,35 +139,207 @@ def window_ranges_by_time(
 
     Returns:
         int64 array :math:`(M, 2)` of ``[begin, end)`` indices into ``t_us``.
+
+    Raises:
+        EventFormatError: a window or stride that is not positive, or timestamps that decrease.
+
+    Examples:
+        >>> window_ranges_by_time(np.array([0, 1000, 2500, 2600, 7000]), window_ms=2, stride_ms=2.5).tolist()
+        [[0, 2], [2, 4], [4, 4]]
     """
-    window_us, stride_us = (
-        _positive_us(window_ms, "window_ms"),
-        _positive_us(stride_ms or window_ms, "stride_ms"),
-    )
-    t_us = np.asarray(t_us)
-    if t_us.size == 0:
-        return np.zeros((0, 2), dtype=np.int64)
-    start = int(t_us[0]) if start_us is None else int(start_us)
-    count = max(0, (int(t_us[-1]) - start) // stride_us + 1)
-    starts = start + stride_us * np.arange(count, dtype=np.int64)
-    begin = np.searchsorted(t_us, starts, side="left")
-    end = np.searchsorted(t_us, starts + window_us, side="left")
-    return np.column_stack([begin, end]).astype(np.int64)
+    window_us, stride_us = _time_geometry(window_ms, stride_ms)
+    index = TimeWindowIndex(window_us, stride_us, start_us)
+    return np.concatenate([index.add(t_us), index.finish()])
 
 
 def window_ranges_by_count(n_events: int, events_per_window: int, stride: int | None = None) -> np.ndarray:
-    """Index ranges of windows of ``events_per_window`` events, starting every ``stride`` events.
+    """Index ranges of windows of ``events_per_window`` events, as :class:`CountWindowIndex` cuts them.
 
-    The last window may be shorter. Returns an int64 array :math:`(M, 2)` of ``[begin, end)``.
+    Windows start every ``stride`` events: every full window, then one last window of the events left
+    from the next start on, if any.
+
+    Args:
+        n_events: number of events.
+        events_per_window: events per window.
+        stride: step between the windows' first events; defaults to ``events_per_window``.
+
+    Returns:
+        int64 array :math:`(M, 2)` of ``[begin, end)`` event indices.
+
+    Raises:
+        EventFormatError: a window size or stride that is not a positive whole number, or a negative
+            ``n_events``.
+
+    Examples:
+        >>> window_ranges_by_count(10, 4, stride=3).tolist()
+        [[0, 4], [3, 7], [6, 10], [9, 10]]
     """
-    if int(events_per_window) <= 0:
-        raise EventFormatError(f"events_per_window must be positive, got {events_per_window}")
-    stride = int(stride or events_per_window)
-    if stride <= 0:
-        raise EventFormatError(f"stride must be positive, got {stride}")
-    begin = np.arange(0, max(int(n_events), 0), stride, dtype=np.int64)
-    end = np.minimum(begin + int(events_per_window), n_events)
-    return np.column_stack([begin, end]).astype(np.int64)
+    stride = None if stride is None else _positive_whole(stride, "stride")
+    index = CountWindowIndex(events_per_window, stride)
+    return np.concatenate([index.add(n_events), index.finish()])
+
+
+class TimeWindowIndex:
+    """``[begin, end)`` event indices of time windows, found chunk by chunk while a stream passes.
+
+    Window ``i`` covers the timestamps ``[start + i*stride, start + i*stride + window)``; the windows are
+    those that start at or before the stream's last timestamp, empty ones (gaps) included. A window is
+    complete once an event at or after its end has arrived, and :meth:`add` returns it then; the windows
+    still open at the end of the stream come from :meth:`finish`, which ends the stream.
+
+    A window start or end first reached in a chunk lies after every earlier event, so its index is the
+    count of earlier events plus one ``searchsorted`` within the chunk: each chunk costs what its own
+    length and the windows it reaches cost, whatever came before.
+
+    Args:
+        window_us: window length in microseconds.
+        stride_us: step between window starts; defaults to ``window_us`` (no overlap).
+        start_us: start of window 0; defaults to the stream's first timestamp.
+
+    Attributes:
+        start_us: start of window 0 (``None`` until the first event when not given).
+        n_events: events added so far.
+        n_windows: windows returned so far.
+
+    Raises:
+        EventFormatError: a window or stride that is not a positive whole number of microseconds.
+
+    Examples:
+        >>> index = TimeWindowIndex(window_us=10, stride_us=5)
+        >>> index.add(np.array([0, 3, 8, 12])).tolist()  # 12 closes [0, 10)
+        [[0, 3]]
+        >>> index.add(np.array([16, 40])).tolist()  # 40 closes the windows up to [30, 40)
+        [[2, 4], [3, 5], [4, 5], [5, 5], [5, 5], [5, 5]]
+        >>> index.finish().tolist()  # [35, 45) and [40, 50) end with the stream
+        [[5, 6], [5, 6]]
+    """
+
+    def __init__(self, window_us: int, stride_us: int | None = None, start_us: int | None = None) -> None:
+        self.window_us = _positive_whole(window_us, "window_us")
+        self.stride_us = self.window_us if stride_us is None else _positive_whole(stride_us, "stride_us")
+        self.start_us = None if start_us is None else _whole(start_us, "start_us")
+        self.n_events, self.n_windows = 0, 0
+        self._open = np.zeros(0, dtype=np.int64)  # begins of the windows started but not yet complete
+        self._last_us = None
+
+    @property
+    def needed_from(self) -> int:
+        """Index of the first event a window not yet returned may hold; no later window needs those before."""
+        return int(self._open[0]) if len(self._open) else self.n_events
+
+    def add(self, t_us: np.ndarray) -> np.ndarray:
+        """Index the stream's next chunk of timestamps.
+
+        Args:
+            t_us: the chunk's integer timestamps in microseconds, :math:`(n,)`, non-decreasing and at
+                or after those of earlier chunks.
+
+        Returns:
+            int64 :math:`(K, 2)`, ``[begin, end)`` in the whole stream of the windows this chunk completes.
+
+        Raises:
+            EventFormatError: timestamps not 1-D, or that decrease, within the chunk or from the previous
+                one.
+        """
+        t_us = np.asarray(t_us)
+        if t_us.ndim != 1:
+            raise EventFormatError(f"timestamps must be a 1-D array (n,), got shape {t_us.shape}")
+        if len(t_us) == 0:
+            return np.zeros((0, 2), dtype=np.int64)
+        _check_sorted(t_us, self._last_us, self.n_events)
+        if self.start_us is None:
+            self.start_us = int(t_us[0])
+        last = int(t_us[-1])
+        started = self.n_windows + len(self._open)
+        starts = self._starts(started, self._windows_starting_by(last))
+        self._open = np.concatenate([self._open, self.n_events + np.searchsorted(t_us, starts, side="left")])
+        complete = self._windows_starting_by(last - self.window_us)
+        ends = self._starts(self.n_windows, complete) + self.window_us
+        ranges = np.column_stack(
+            [self._open[: len(ends)], self.n_events + np.searchsorted(t_us, ends, side="left")]
+        )
+        self._open = self._open[len(ends) :]
+        self.n_events, self.n_windows, self._last_us = self.n_events + len(t_us), complete, last
+        return ranges.astype(np.int64, copy=False)
+
+    def finish(self) -> np.ndarray:
+        """The windows still open at the end of the stream, int64 :math:`(K, 2)`; each ends with it."""
+        ranges = np.column_stack([self._open, np.full(len(self._open), self.n_events, dtype=np.int64)])
+        self.n_windows += len(self._open)
+        self._open = self._open[:0]
+        return ranges
+
+    def _windows_starting_by(self, t_us: int) -> int:
+        """How many windows start at or before ``t_us``."""
+        return max(0, (t_us - self.start_us) // self.stride_us + 1)
+
+    def _starts(self, first: int, stop: int) -> np.ndarray:
+        return self.start_us + self.stride_us * np.arange(first, stop, dtype=np.int64)
+
+
+class CountWindowIndex:
+    """``[begin, end)`` event indices of windows of an event count, found chunk by chunk.
+
+    Window ``i`` holds events ``[i*stride, i*stride + events_per_window)``. :meth:`add` returns each
+    full window once its last event has arrived; :meth:`finish`, which ends the stream, returns one last
+    window of the events left from the next start on, if any: the only window that may hold fewer events.
+
+    Args:
+        events_per_window: events per window.
+        stride_events: step between the windows' first events; defaults to ``events_per_window``.
+
+    Attributes:
+        n_events: events added so far.
+        n_windows: windows returned so far.
+
+    Raises:
+        EventFormatError: a window size or stride that is not a positive whole number.
+
+    Examples:
+        >>> index = CountWindowIndex(events_per_window=3, stride_events=5)
+        >>> index.add(7).tolist(), index.add(4).tolist(), index.finish().tolist()
+        ([[0, 3]], [[5, 8]], [[10, 11]])
+    """
+
+    def __init__(self, events_per_window: int, stride_events: int | None = None) -> None:
+        self.events_per_window = _positive_whole(events_per_window, "events_per_window")
+        self.stride_events = (
+            self.events_per_window
+            if stride_events is None
+            else _positive_whole(stride_events, "stride_events")
+        )
+        self.n_events, self.n_windows = 0, 0
+
+    @property
+    def needed_from(self) -> int:
+        """Index of the next window's first event, maybe not yet arrived; no later window needs one before."""
+        return self.n_windows * self.stride_events
+
+    def add(self, n_events: int) -> np.ndarray:
+        """Count the stream's next ``n_events`` events.
+
+        Returns:
+            int64 :math:`(K, 2)`, ``[begin, end)`` of the full windows these events complete.
+
+        Raises:
+            EventFormatError: ``n_events`` is not a whole number of at least 0.
+        """
+        n_events = _whole(n_events, "n_events")
+        if n_events < 0:
+            raise EventFormatError(f"n_events must be at least 0, got {n_events}")
+        self.n_events += n_events
+        full = max(0, (self.n_events - self.events_per_window) // self.stride_events + 1)
+        begins = self.stride_events * np.arange(self.n_windows, full, dtype=np.int64)
+        self.n_windows = full
+        return np.column_stack([begins, begins + self.events_per_window])
+
+    def finish(self) -> np.ndarray:
+        """The last window, of the events left from the next start on, int64 :math:`(K, 2)` with K 0 or 1."""
+        begin = self.needed_from
+        if begin >= self.n_events:
+            return np.zeros((0, 2), dtype=np.int64)
+        self.n_windows += 1
+        return np.array([[begin, self.n_events]], dtype=np.int64)
 
 
 class Window(NamedTuple):
@@ -189,9 +360,10 @@ def iter_windows(
 ) -> Iterator[Window]:
     """Cut a stream of canonical event chunks into windows, holding only what the next window needs.
 
-    Windows are either ``window_ms`` long and start every ``stride_ms`` (default: no overlap), or hold
-    ``events_per_window`` events and start every ``stride_events``. Memory stays bounded by one chunk
-    plus one window, however long the stream. The chunks must continue each other in time.
+    Windows are either ``window_ms`` long and start every ``stride_ms`` (default: no overlap), as
+    :class:`TimeWindowIndex` cuts them, or hold ``events_per_window`` events and start every
+    ``stride_events``, as :class:`CountWindowIndex` cuts them (every full window, then one last window of
+    the events left). Memory stays bounded by one chunk plus one window, however long the stream.
 
     Args:
         chunks: canonical event arrays (:data:`EVENT_DTYPE`), consecutive pieces of one recording.
@@ -201,44 +373,32 @@ def iter_windows(
         per-window results map back to the caller's order.
 
     Raises:
-        EventFormatError: on no window size, on both kinds at once, or when time runs backwards
-            between chunks.
+        EventFormatError: on no window size, on both kinds at once, on a size or stride that is not
+            positive, or when time runs backwards.
+
+    Examples:
+        >>> events = as_events(np.column_stack([np.arange(6) * 1e-3, np.zeros((6, 3))]))
+        >>> chunks = [events[:4], events[4:]]
+        >>> windows = iter_windows(chunks, events_per_window=2, stride_events=3)
+        >>> [(w.index, w.offset, len(w.events)) for w in windows]
+        [(0, 0, 2), (1, 3, 2)]
     """
     if (window_ms is None) == (events_per_window is None):
         raise EventFormatError("give exactly one of window_ms and events_per_window")
-    buffer = np.zeros(0, dtype=EVENT_DTYPE)
-    buffer_offset, index, next_start = 0, 0, None
-    if window_ms is not None:
-        window_us = _positive_us(window_ms, "window_ms")
-        stride_us = _positive_us(stride_ms or window_ms, "stride_ms")
+    by_time = window_ms is not None
+    if by_time:
+        index = TimeWindowIndex(*_time_geometry(window_ms, stride_ms))
     else:
-        size = _whole(events_per_window, "events_per_window")
-        stride = size if stride_events is None else _whole(stride_events, "stride_events")
-        if size <= 0 or stride <= 0:
-            raise EventFormatError(f"events_per_window and its stride must be positive, got {size}, {stride}")
+        index = CountWindowIndex(events_per_window, stride_events)
+    buffer, buffer_offset = np.zeros(0, dtype=EVENT_DTYPE), 0
     for chunk in _checked_chunks(chunks):
         buffer = np.concatenate([buffer, chunk])
-        if window_ms is not None:
-            next_start = int(buffer["t"][0]) if next_start is None else next_start
-            # A window is complete once an event at or after its end has arrived.
-            while len(buffer) and buffer["t"][-1] >= next_start + window_us:
-                yield _time_window(buffer, buffer_offset, index, next_start, window_us)
-                index, next_start = index + 1, next_start + stride_us
-                drop = int(np.searchsorted(buffer["t"], next_start, side="left"))
-                buffer, buffer_offset = buffer[drop:], buffer_offset + drop
-        else:
-            while len(buffer) >= size:
-                yield Window(index, buffer[:size].copy(), buffer_offset)
-                index += 1
-                buffer, buffer_offset = buffer[stride:], buffer_offset + stride
-    if window_ms is not None:
-        while next_start is not None and len(buffer) and buffer["t"][-1] >= next_start:
-            yield _time_window(buffer, buffer_offset, index, next_start, window_us)
-            index, next_start = index + 1, next_start + stride_us
-            drop = int(np.searchsorted(buffer["t"], next_start, side="left"))
-            buffer, buffer_offset = buffer[drop:], buffer_offset + drop
-    elif len(buffer):
-        yield Window(index, buffer.copy(), buffer_offset)
+        yield from _cut(buffer, buffer_offset, index.add(chunk["t"] if by_time else len(chunk)), index)
+        # The next window may start past the buffer's end (a count stride longer than the window),
+        # so the drop stops there and the offset stays that of the buffer's first event.
+        drop = min(index.needed_from - buffer_offset, len(buffer))
+        buffer, buffer_offset = buffer[drop:], buffer_offset + drop
+    yield from _cut(buffer, buffer_offset, index.finish(), index)
 
 
 class EventBatch(NamedTuple):
@@ -390,13 +550,42 @@ def _whole(value, name: str) -> int:
     return int(value)
 
 
-def _time_window(buffer: np.ndarray, offset: int, index: int, start: int, length: int) -> Window:
-    begin, end = np.searchsorted(buffer["t"], [start, start + length], side="left")
-    return Window(index, buffer[begin:end].copy(), offset + int(begin))
+def _positive_whole(value, name: str) -> int:
+    whole = _whole(value, name)
+    if whole <= 0:
+        raise EventFormatError(f"{name} must be a positive whole number, got {value!r}")
+    return whole
+
+
+def _time_geometry(window_ms: float, stride_ms: float | None) -> tuple[int, int]:
+    """``(window_us, stride_us)``; the stride defaults to the window."""
+    window_us = _positive_us(window_ms, "window_ms")
+    return window_us, window_us if stride_ms is None else _positive_us(stride_ms, "stride_ms")
+
+
+def _cut(
+    buffer: np.ndarray, buffer_offset: int, ranges: np.ndarray, index: TimeWindowIndex | CountWindowIndex
+) -> Iterator[Window]:
+    """The windows at stream indices ``ranges`` :math:`(K, 2)`, the last K of ``index``, from ``buffer``."""
+    first = index.n_windows - len(ranges)
+    for number, (begin, end) in enumerate(ranges.tolist(), start=first):
+        yield Window(number, buffer[begin - buffer_offset : end - buffer_offset].copy(), begin)
+
+
+def _check_sorted(t_us: np.ndarray, last_us: int | None, n_before: int) -> None:
+    """Raise unless ``t_us`` :math:`(n,)` is non-decreasing and starts at or after ``last_us``."""
+    if last_us is not None and t_us[0] < last_us:
+        raise EventFormatError(f"timestamps decrease between chunks ({last_us} us then {t_us[0]} us)")
+    backwards = t_us[1:] < t_us[:-1]  # a comparison, not np.diff, which can overflow on huge spans
+    if np.any(backwards):
+        first = int(np.argmax(backwards)) + 1
+        raise EventFormatError(
+            f"timestamps decrease at event {n_before + first} ({t_us[first - 1]} us then {t_us[first]} us)"
+        )
 
 
 def _checked_chunks(chunks: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
-    last = None
+    last, n_before = None, 0
     for chunk in chunks:
         if chunk.dtype != EVENT_DTYPE:
             raise EventFormatError(
@@ -404,9 +593,8 @@ def _checked_chunks(chunks: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
             )
         if len(chunk) == 0:
             continue
-        if last is not None and chunk["t"][0] < last:
-            raise EventFormatError(f"timestamps decrease between chunks ({last} us then {chunk['t'][0]} us)")
-        last = int(chunk["t"][-1])
+        _check_sorted(chunk["t"], last, n_before)
+        last, n_before = int(chunk["t"][-1]), n_before + len(chunk)
         yield chunk
 
 

@@ -4,8 +4,10 @@ Construction makes one streaming pass over the file (:func:`~evseg_torch.io.iter
 validates the events, writes them in canonical form (and, for a labelled file, each event's label and
 ignore flag) to ``.npy`` files in a cache directory of the dataset's own, and records each window's
 ``[begin, end)`` event indices. A recording that already is a canonical structured ``.npy`` (dtype
-:data:`~evseg_torch.events.EVENT_DTYPE`) is read in place, without a copy. The windows are exactly those
-of :func:`~evseg_torch.events.iter_windows` on the same file, empty time windows (gaps) included.
+:data:`~evseg_torch.events.EVENT_DTYPE`) is read in place, without a copy. The windows are cut by
+:class:`~evseg_torch.events.TimeWindowIndex` or :class:`~evseg_torch.events.CountWindowIndex`, as
+:func:`~evseg_torch.events.iter_windows` cuts them: exactly its windows on the same file, empty time
+windows (gaps) included.
 
 Each item reads its window's rows with plain file reads, so memory stays bounded by one chunk during the
 pass and by one window per item, however long the recording. The files are not memory-mapped: the pages
@@ -51,7 +53,7 @@ import torch
 from torch.utils.data import Dataset
 
 from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
-from evseg_torch.events import EVENT_DTYPE, check_sensor_size, to_torch
+from evseg_torch.events import EVENT_DTYPE, CountWindowIndex, TimeWindowIndex, check_sensor_size, to_torch
 from evseg_torch.io import iter_event_chunks, read_sensor_size
 from evseg_torch.io.guard import existing_file, reading
 from evseg_torch.io.numpy_files import WHAT_NPY, WHAT_NPZ, open_npz
@@ -67,8 +69,9 @@ class EventWindowDataset(Dataset):
         window_ms: window length in milliseconds; windows start at the first event and every
             ``stride_ms`` after it, up to the last event.
         stride_ms: step between time windows' starts; defaults to ``window_ms`` (no overlap).
-        events_per_window: instead of ``window_ms``, windows of this many events (the last may hold
-            fewer), starting every ``stride_events`` events.
+        events_per_window: instead of ``window_ms``, windows of this many events, starting every
+            ``stride_events`` events: every full window, then one last window of the events left from
+            the next start on, if any.
         stride_events: step between count windows' first events; defaults to ``events_per_window``.
         sensor_size: ``(H, W)`` every event must lie inside; defaults to the file's ``sensor_size``
             member (``.npz``), else the size the file stores, else the smallest that holds the events.
@@ -188,13 +191,16 @@ class EventWindowDataset(Dataset):
 
     def _pass(self, chunks, cache: _Cache, labels: _Labels | None):
         """Write the cache and index the windows in one pass; returns what the items need."""
-        times = _TimeWindowIndex(self._window_us, self._stride_us) if self._window_us is not None else None
-        n_events, max_y, max_x = 0, 0, 0
+        by_time = self._window_us is not None
+        if by_time:
+            index = TimeWindowIndex(self._window_us, self._stride_us)
+        else:
+            index = CountWindowIndex(self._count, self._stride_count)
+        ranges, n_events, max_y, max_x = [], 0, 0, 0
         for chunk in chunks:
             end = n_events + len(chunk)
             cache.append(chunk, labels.read(n_events, end) if labels is not None else None)
-            if times is not None:
-                times.add(chunk["t"])
+            ranges.append(index.add(chunk["t"] if by_time else len(chunk)))
             n_events = end
             max_y, max_x = max(max_y, int(chunk["y"].max())), max(max_x, int(chunk["x"].max()))
         if labels is not None and n_events != labels.length:
@@ -203,10 +209,9 @@ class EventWindowDataset(Dataset):
                 f"{self.path}: {labels.label_field!r} holds {labels.length} labels for {n_events} events; "
                 "labels must match the events one to one"
             )
-        if times is not None:
-            return times.origin_us, times.ranges(), n_events, (max_y + 1, max_x + 1)
-        ranges = _count_ranges(n_events, self._count, self._stride_count)
-        return None, ranges, n_events, (max_y + 1, max_x + 1)
+        ranges = np.concatenate([*ranges, index.finish()])
+        origin_us = index.start_us if by_time else None
+        return origin_us, ranges, n_events, (max_y + 1, max_x + 1)
 
 
 class _Rows(NamedTuple):
@@ -288,41 +293,6 @@ class _Cache:
         if labels is not None:
             self._labels.append(labels[0])
             self._ignore.append(labels[1])
-
-
-class _TimeWindowIndex:
-    """``[begin, end)`` of time windows, found chunk by chunk while the stream passes.
-
-    Windows start at the first timestamp and every ``stride_us`` after it, up to the last timestamp,
-    as in :func:`~evseg_torch.events.iter_windows`. A start first reached in a chunk lies after every
-    earlier event, and an end still pending after a chunk lies after all its events, so each index is
-    the count of earlier events plus a search within one chunk.
-    """
-
-    def __init__(self, window_us: int, stride_us: int) -> None:
-        self.window_us, self.stride_us = window_us, stride_us
-        self.origin_us = None
-        self._begins, self._ends = [], []
-        self._pending = np.zeros(0, dtype=np.int64)
-        self._started, self._seen = 0, 0
-
-    def add(self, t_us: np.ndarray) -> None:
-        """Index one chunk's timestamps :math:`(n,)`, the stream's next."""
-        if self.origin_us is None:
-            self.origin_us = int(t_us[0])
-        last = int(t_us[-1])
-        started = (last - self.origin_us) // self.stride_us + 1
-        starts = self.origin_us + self.stride_us * np.arange(self._started, started, dtype=np.int64)
-        self._begins.append(self._seen + np.searchsorted(t_us, starts, side="left"))
-        pending = np.concatenate([self._pending, starts + self.window_us])  # increasing
-        reached = int(np.searchsorted(pending, last, side="right"))
-        self._ends.append(self._seen + np.searchsorted(t_us, pending[:reached], side="left"))
-        self._pending, self._started, self._seen = pending[reached:], started, self._seen + len(t_us)
-
-    def ranges(self) -> np.ndarray:
-        """int64 :math:`(M, 2)`; ends still pending lie past the last event."""
-        ends = np.concatenate([*self._ends, np.full(len(self._pending), self._seen)])
-        return np.column_stack([np.concatenate(self._begins), ends]).astype(np.int64)
 
 
 class _Labels:
@@ -422,18 +392,6 @@ def _stored_sensor_size(path: Path) -> tuple[int, int] | None:
                 except EventFormatError as err:
                     raise ReaderError(f"the sensor_size member is invalid: {err}") from None
     return read_sensor_size(path)
-
-
-def _count_ranges(n_events: int, size: int, stride: int) -> np.ndarray:
-    """``[begin, end)`` of windows of ``size`` events every ``stride``, as int64 :math:`(M, 2)`.
-
-    As :func:`~evseg_torch.events.iter_windows` cuts them: every full window, then one window of the
-    events left from the next start on, if any (:func:`~evseg_torch.events.window_ranges_by_count`
-    instead gives a shorter window at every further start).
-    """
-    full = (n_events - size) // stride + 1 if n_events >= size else 0
-    begins = stride * np.arange(full + (full * stride < n_events), dtype=np.int64)
-    return np.column_stack([begins, np.minimum(begins + size, n_events)])
 
 
 def _geometry(window_ms, stride_ms, events_per_window, stride_events) -> tuple:
