@@ -73,6 +73,13 @@ def _parser() -> argparse.ArgumentParser:
     segment.add_argument("--workers", type=int, default=1, help="process this many files in parallel")
     segment.add_argument("--overwrite", action="store_true", help="replace existing output")
     segment.add_argument("--chunk-size", type=int, default=1_000_000, help="events read at a time")
+    segment.add_argument(
+        "--batch-size",
+        type=int,
+        default=1,
+        help="windows segmented together by one batched level two (default 1); each window of a batch "
+        "starts from the models of the previous batch's last window",
+    )
     segment.set_defaults(run=_segment)
 
     demo = commands.add_parser(
@@ -223,6 +230,8 @@ def _segment(args) -> int:
     from evseg_torch.io import SUPPORTED_SUFFIXES, read_sensor_size
 
     config = load_config(args.config) if args.config else SegmenterConfig()
+    if args.batch_size < 1:
+        raise EvsegError(f"--batch-size must be at least 1, got {args.batch_size}")
     jobs = []
     for name in args.inputs:
         path = Path(name)
@@ -246,6 +255,7 @@ def _segment(args) -> int:
         "save_images": args.save_images,
         "overwrite": args.overwrite,
         "chunk_size": args.chunk_size,
+        "batch_size": args.batch_size,
         "progress": not args.quiet and args.workers <= 1,
     }
     from tqdm.auto import tqdm
@@ -282,6 +292,7 @@ def segment_file(
     save_images=False,
     overwrite=False,
     chunk_size=1_000_000,
+    batch_size=1,
     progress=False,
 ) -> dict:
     """Segment one recording window by window and write its results (see :mod:`evseg_torch.output`)."""
@@ -300,7 +311,8 @@ def segment_file(
     counted = _CountingChunks(iter_event_chunks(path, chunk_size, sensor_size=sensor_size))
     start = time.perf_counter()
     with SegmentationWriter(out, config, save_images=save_images, overwrite=overwrite) as writer:
-        for result in tqdm(segmenter.stream(counted), desc=path.name, unit=" windows", disable=not progress):
+        results = segmenter.stream(counted, batch_size=batch_size)
+        for result in tqdm(results, desc=path.name, unit=" windows", disable=not progress):
             writer.add(result)
         if counted.n_events == 0:
             raise EvsegError(f"{path}: the recording holds no events")

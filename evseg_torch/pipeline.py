@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
-from numbers import Real
+from numbers import Integral, Real
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +18,7 @@ from torch import Tensor, nn
 
 from evseg_torch.config import SegmenterConfig, load_config, replace_config
 from evseg_torch.errors import ConfigError, EventFormatError, ModelError
-from evseg_torch.events import EventBatch, as_events, check_sensor_size, iter_windows, to_torch
+from evseg_torch.events import EventBatch, as_events, batch_windows, check_sensor_size, iter_windows, to_torch
 from evseg_torch.level_one.features import Correspondences, extract_correspondences
 from evseg_torch.level_one.progressive_x import ProgressiveXResult, progressive_x
 from evseg_torch.level_two.iwe import warp_events
@@ -190,22 +190,75 @@ class CascadedSegmenter(nn.Module):
             ModelError: ``initial_models`` is malformed.
         """
         if isinstance(events, EventBatch) and events.is_batched:
-            if initial_models is None:
-                initial_models = [None] * len(events)
-            if len(initial_models) != len(events):
-                raise ModelError(
-                    f"initial_models must hold one (M, P) stack per window ({len(events)}), "
-                    f"got {len(initial_models)}"
-                )
-            return [
-                self.forward(window, t_ref, models)
-                for window, models in zip(events.unbatch(), initial_models, strict=True)
-            ]
-        as_tensors = isinstance(events, (Tensor, EventBatch))
-        events = as_events(_event_rows(events), self.sensor_size)
-        if isinstance(initial_models, Tensor):
-            initial_models = initial_models.detach().cpu().numpy()
-        return self._segment(events, t_ref, initial_models, as_tensors)
+            return self.segment_batch(events.unbatch(), t_ref, initial_models)
+        return self.segment_batch([events], t_ref, None if initial_models is None else [initial_models])[0]
+
+    def segment_batch(
+        self, windows: Sequence, t_ref: float | None = None, initial_models: Sequence | None = None
+    ) -> list[Segmentation]:
+        """Segment several windows, with one batched level two for all of them.
+
+        Level one runs window by window (NumPy, CPU); level two labels and refits every window in one
+        batched call (:class:`~evseg_torch.level_two.segmenter.GraphCutContrastSegmenter`). Each window's
+        result equals what :meth:`forward` gives for it alone.
+
+        Args:
+            windows: B windows, each in any form :meth:`forward` accepts for one window.
+            t_ref: reference time of every window, seconds; defaults to each window's first event.
+            initial_models: one :math:`(M, P)` stack (or ``None``) per window.
+
+        Returns:
+            One :class:`Segmentation` per window, in order; ``timings_ms["level_two"]`` is the batched
+            call's time divided by B.
+
+        Raises:
+            EventFormatError: a window is invalid (see :meth:`forward`).
+            ModelError: ``initial_models`` does not hold one entry per window, or one is malformed.
+        """
+        windows = list(windows)
+        if initial_models is None:
+            initial_models = [None] * len(windows)
+        if len(initial_models) != len(windows):
+            raise ModelError(
+                f"initial_models must hold one (M, P) stack per window ({len(windows)}), "
+                f"got {len(initial_models)}"
+            )
+        as_tensors = [isinstance(window, (Tensor, EventBatch)) for window in windows]
+        starts = [time.perf_counter()]
+        prepared = []
+        for window, models in zip(windows, initial_models, strict=True):
+            events = as_events(_event_rows(window), self.sensor_size)
+            if isinstance(models, Tensor):
+                models = models.detach().cpu().numpy()
+            t_ref_us = _reference_us(events, t_ref)
+            prepared.append((events, t_ref_us, *self._level_one(events, t_ref_us, models)))
+            starts.append(time.perf_counter())
+        device, dtype = self._device_dtype()
+        batches = [
+            to_torch(events, t_ref_us=t_ref_us, device=device, dtype=dtype)
+            for events, t_ref_us, *_ in prepared
+        ]
+        pools = [
+            torch.as_tensor(
+                fitted.params if len(fitted.params) else np.zeros((1, self.motion.n_params)),
+                device=device,
+                dtype=dtype,
+            )
+            for *_, fitted, _ in prepared
+        ]
+        with torch.no_grad():
+            twos = (
+                self.level_two(batch_windows(batches), pools)
+                if len(batches) > 1
+                else [self.level_two(batches[0], pools[0])]
+            )
+        level_two_ms = 1e3 * (time.perf_counter() - starts[-1]) / len(windows)
+        return [
+            self._result(item, batch, two, level_one_ms, level_two_ms, tensors)
+            for item, batch, two, level_one_ms, tensors in zip(
+                prepared, batches, twos, np.diff(starts) * 1e3, as_tensors, strict=True
+            )
+        ]
 
     def stream(
         self,
@@ -213,17 +266,26 @@ class CascadedSegmenter(nn.Module):
         window_ms: float | None = None,
         stride_ms: float | None = None,
         events_per_window: int | None = None,
+        batch_size: int = 1,
     ) -> Iterator[Segmentation]:
         """Segment sliding windows, reusing each window's models to bootstrap the next.
 
         Args:
             events: all events (any accepted form), or an iterable of canonical chunks of a recording.
             window_ms, stride_ms, events_per_window: window geometry; default from the config.
+            batch_size: windows segmented together by :meth:`segment_batch`. With more than one, every
+                window of a batch starts from the models of the last window of the batch before (the
+                windows of a batch are segmented at once, so none can wait for its predecessor's).
 
         Yields:
             :class:`Segmentation` of each window with at least ``min_events`` events; its ``offset`` and
             ``window_index`` place it in the stream.
+
+        Raises:
+            ConfigError: ``batch_size`` is not a positive integer.
         """
+        if isinstance(batch_size, bool) or not isinstance(batch_size, Integral) or batch_size < 1:
+            raise ConfigError(f"batch_size must be a positive integer, got {batch_size!r}")
         chunks = _as_chunks(events, self.sensor_size)
         windows = self.config.window
         if window_ms is None and events_per_window is None:
@@ -231,42 +293,35 @@ class CascadedSegmenter(nn.Module):
             if events_per_window is not None:
                 window_ms = None
         stride_ms = stride_ms if stride_ms is not None else (windows.stride_ms if window_ms else None)
-        previous = None
-        for window in iter_windows(
+        cut = iter_windows(
             chunks, window_ms=window_ms, stride_ms=stride_ms, events_per_window=events_per_window
-        ):
-            if len(window.events) < windows.min_events:
-                continue
-            result = self._segment(window.events, None, previous)
+        )
+        kept = (window for window in cut if len(window.events) >= windows.min_events)
+        previous = None
+        for batch in _batched(kept, batch_size):
+            results = self.segment_batch([window.events for window in batch], None, [previous] * len(batch))
             if self.config.level_one.reuse_models:
                 # A refit that diverged (no motion of this sensor) would only derail the next window.
-                previous = result.models[self.motion.plausible(result.models)]
-            yield replace(result, offset=window.offset, window_index=window.index)
+                previous = results[-1].models[self.motion.plausible(results[-1].models)]
+            for window, result in zip(batch, results, strict=True):
+                yield replace(result, offset=window.offset, window_index=window.index)
 
-    def _segment(
-        self, events: np.ndarray, t_ref: float | None, initial_models, as_tensors: bool = False
-    ) -> Segmentation:
-        cfg = self.config
-        start = time.perf_counter()
-        t_ref_us = _reference_us(events, t_ref)
-        tracks, fitted, after_features = self._level_one(events, t_ref_us, initial_models)
-        after_level_one = time.perf_counter()
-        pool = fitted.params if len(fitted.params) else np.zeros((1, self.motion.n_params))
-        device, dtype = self._device_dtype()
-        batch = to_torch(events, t_ref_us=t_ref_us, device=device, dtype=dtype)
+    def _result(
+        self, prepared, batch: EventBatch, two, before_ms: float, level_two_ms: float, as_tensors: bool
+    ):
+        """One window's :class:`Segmentation` from its level-one and level-two results."""
+        events, t_ref_us, tracks, fitted, features_ms = prepared
         with torch.no_grad():
-            two = self.level_two(batch, torch.as_tensor(pool, device=device, dtype=dtype))
             own = two.params[two.labels]
             warped = warp_events(self.motion, batch.xy[:, None], batch.t[:, None], own)[:, 0]
         labels, models, iwes, soft = two.labels, two.params, two.iwes, two.soft_assignments
         if not as_tensors:
             labels, iwes, soft = _numpy(labels), _numpy(iwes), _numpy(soft)
             models, warped = _numpy(models).astype(np.float64), _numpy(warped).astype(np.float64)
-        end = time.perf_counter()
         return Segmentation(
             labels=labels,
             models=models,
-            motion_model=cfg.motion_model,
+            motion_model=self.config.motion_model,
             warped_xy=warped,
             t_ref=t_ref_us * 1e-6,
             feature_tracks=tracks,
@@ -276,10 +331,10 @@ class CascadedSegmenter(nn.Module):
             soft_assignments=soft,
             energy_history=tuple(two.energy_history),
             timings_ms={
-                "features": 1e3 * (after_features - start),
-                "level_one": 1e3 * (after_level_one - after_features),
-                "level_two": 1e3 * (end - after_level_one),
-                "total": 1e3 * (end - start),
+                "features": features_ms,
+                "level_one": before_ms - features_ms,
+                "level_two": level_two_ms,
+                "total": before_ms + level_two_ms,
             },
             sensor_size=self.sensor_size,
             events=events,
@@ -289,6 +344,7 @@ class CascadedSegmenter(nn.Module):
         """Features and Progressive-X; skipped in a window of one instant, on a tiny sensor, or when the
         config says that given models replace level one."""
         cfg = self.config
+        start = time.perf_counter()
         given = None if initial_models is None else self.motion.check_instances(initial_models)
         replaced = given is not None and len(given) and cfg.level_one.initial_models == "replace"
         if replaced or events["t"][-1] == events["t"][0] or min(self.sensor_size) < _MIN_FEATURE_SIZE:
@@ -296,7 +352,7 @@ class CascadedSegmenter(nn.Module):
             tracks = Correspondences(empty, empty, np.zeros(0), 0.0, 0.0)
             pool = given if replaced else np.zeros((0, self.motion.n_params))
             fitted = ProgressiveXResult(pool, np.zeros(0, dtype=np.int64), 0, 0)
-            return tracks, fitted, time.perf_counter()
+            return tracks, fitted, 1e3 * (time.perf_counter() - start)
         feats = cfg.features
         tracks = extract_correspondences(
             events,
@@ -334,7 +390,7 @@ class CascadedSegmenter(nn.Module):
             # Seeded afresh for every window: a window's labels never depend on the calls before it.
             rng=np.random.default_rng(cfg.seed),
         )
-        return tracks, fitted, after_features
+        return tracks, fitted, 1e3 * (after_features - start)
 
     def _device_dtype(self) -> tuple[torch.device, torch.dtype]:
         return self._anchor.device, self._anchor.dtype
@@ -369,6 +425,18 @@ def _event_rows(events):
     if isinstance(events, Tensor):
         return events.detach().cpu().double().numpy()
     return events
+
+
+def _batched(items: Iterable, size: int) -> Iterator[list]:
+    """Consecutive lists of ``size`` items (the last may be shorter)."""
+    batch = []
+    for item in items:
+        batch.append(item)
+        if len(batch) == size:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
 
 
 def _numpy(value):

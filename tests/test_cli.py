@@ -106,6 +106,20 @@ def test_segment_writes_results_in_input_order(tmp_path):
     assert len(list((folder / "images").glob("*.png"))) == len(windows)
 
 
+def test_segment_in_batches_writes_the_same_windows(tmp_path, capsys):
+    path = _scene_file(tmp_path)
+    written = {}
+    for batch_size in (1, 3):
+        out = tmp_path / f"out{batch_size}"
+        args = ["--quiet", "segment", str(path), "--out", str(out), "--window-ms", "10"]
+        assert main([*args, "--batch-size", str(batch_size)]) == 0
+        lines = (out / path.stem / "models.jsonl").read_text().splitlines()
+        written[batch_size] = [(w["window"], w["first_event"], w["n_events"]) for w in map(json.loads, lines)]
+    assert written[1] == written[3] and len(written[1]) >= 3
+    assert main(["--quiet", "segment", str(path), "--out", str(tmp_path / "x"), "--batch-size", "0"]) == 2
+    assert "--batch-size" in _error_line(capsys)
+
+
 def test_existing_output_needs_overwrite(tmp_path, capsys):
     path = _scene_file(tmp_path)
     out = tmp_path / "out"

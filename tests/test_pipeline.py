@@ -7,6 +7,7 @@ import torch
 from evseg_torch import CascadedSegmenter, EventFormatError, Segmentation
 from evseg_torch.errors import ConfigError, ModelError
 from evseg_torch.events import EventBatch, batch_windows, to_array, to_torch
+from evseg_torch.metrics import labelling_accuracy
 from evseg_torch.synthetic import make_scene
 
 SIZE = (90, 120)
@@ -112,14 +113,15 @@ def test_stream_does_not_reuse_diverged_models(monkeypatch):
     """A window whose models are no image motion (a diverged refit) does not derail the next one."""
     scene = make_scene(SIZE, 0.06, n_objects=1, rng=4)
     segmenter = CascadedSegmenter(sensor_size=SIZE)
-    segment, reused = segmenter._segment, []
+    segment, reused = segmenter.segment_batch, []
 
-    def diverging(events, t_ref, initial_models):
-        reused.append(initial_models)
-        result = segment(events, t_ref, initial_models)
-        return replace(result, models=1e12 * result.models)
+    def diverging(windows, t_ref, initial_models):
+        reused.extend(initial_models)
+        return [
+            replace(result, models=1e12 * result.models) for result in segment(windows, t_ref, initial_models)
+        ]
 
-    monkeypatch.setattr(segmenter, "_segment", diverging)
+    monkeypatch.setattr(segmenter, "segment_batch", diverging)
     results = list(segmenter.stream(scene.events, window_ms=20))
     assert len(results) >= 2 and reused[0] is None
     assert all(models.shape == (0, segmenter.motion.n_params) for models in reused[1:])
@@ -193,3 +195,35 @@ def test_given_models_replace_or_augment_level_one(scene, result):
         )
     with pytest.raises(ConfigError, match="initial_models"):
         CascadedSegmenter(sensor_size=SIZE, initial_models="skip")
+
+
+def test_segment_batch_equals_windows_one_by_one(scene):
+    segmenter = CascadedSegmenter(sensor_size=SIZE)
+    others = [make_scene(SIZE, 0.03, n_objects=n, rng=10 + n).events for n in (0, 2)]
+    windows = [scene.events, *others]
+    together = segmenter.segment_batch(windows)
+    for window, result in zip(windows, together, strict=True):
+        alone = segmenter(window)
+        np.testing.assert_array_equal(result.labels, alone.labels)
+        np.testing.assert_allclose(result.models, alone.models, rtol=1e-4, atol=1e-3)
+    with pytest.raises(ModelError, match="stack per window"):
+        segmenter.segment_batch(windows, initial_models=[None])
+
+
+def test_stream_in_batches_places_every_window():
+    scene = make_scene((180, 240), 0.12, n_objects=1, rng=4)
+    segmenter = CascadedSegmenter((180, 240))
+    one = list(segmenter.stream(scene.events, window_ms=30))
+    batched = list(segmenter.stream(scene.events, window_ms=30, batch_size=3))
+    assert [r.offset for r in batched] == [r.offset for r in one] and len(one) == 4
+    assert [r.window_index for r in batched] == [r.window_index for r in one]
+    np.testing.assert_array_equal(batched[0].labels, one[0].labels)  # the first window is cold in both
+
+    def accuracy(results):
+        return np.mean(
+            [labelling_accuracy(r.labels, scene.labels[r.offset : r.offset + len(r.labels)]) for r in results]
+        )
+
+    assert accuracy(batched) > accuracy(one) - 0.05 and accuracy(batched) > 0.8, (accuracy(batched), accuracy(one))
+    with pytest.raises(ConfigError, match="batch_size"):
+        next(segmenter.stream(scene.events, batch_size=0))
