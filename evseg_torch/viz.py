@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from evseg_torch.errors import EvsegError
+from evseg_torch.event_images import event_counts
 
 # Okabe-Ito-like palette, readable for colour-blind viewers; label k takes colour k mod 10.
 PALETTE = np.array(
@@ -43,13 +44,7 @@ def label_colors(labels: np.ndarray) -> np.ndarray:
 
 def count_image(xy: np.ndarray, sensor_size: tuple[int, int]) -> np.ndarray:
     """Events per pixel of rounded positions, :math:`(H, W)` float64; positions outside are dropped."""
-    height, width = sensor_size
-    col, row, inside = _pixels(xy, sensor_size)
-    return (
-        np.bincount(row[inside] * width + col[inside], minlength=height * width)
-        .reshape(height, width)
-        .astype(np.float64)
-    )
+    return event_counts(xy, sensor_size).astype(np.float64)
 
 
 def render_event_image(xy: np.ndarray, sensor_size: tuple[int, int], saturation: float = 0.99) -> np.ndarray:
@@ -62,17 +57,10 @@ def render_event_image(xy: np.ndarray, sensor_size: tuple[int, int], saturation:
 
 def render_labels(xy: np.ndarray, labels: np.ndarray, sensor_size: tuple[int, int]) -> np.ndarray:
     """Colour each pixel by the label most of its events carry, white where none fall, :math:`(H, W, 3)`."""
-    height, width = sensor_size
-    labels = np.asarray(labels, dtype=np.int64)
-    col, row, inside = _pixels(xy, sensor_size)
-    shifted = labels[inside] + 1  # -1 (unlabelled) becomes 0
-    n_labels = int(shifted.max(initial=0)) + 1
-    votes = np.bincount(
-        (row[inside] * width + col[inside]) * n_labels + shifted, minlength=height * width * n_labels
-    ).reshape(height * width, n_labels)
-    winner = votes.argmax(axis=1) - 1
-    image = label_colors(winner).reshape(height, width, 3)
-    image[votes.sum(axis=1).reshape(height, width) == 0] = 255
+    shifted = np.asarray(labels, dtype=np.int64) + 1  # -1 (unlabelled) becomes 0
+    votes = event_counts(xy, sensor_size, shifted, n_labels=int(shifted.max(initial=0)) + 1)
+    image = label_colors(votes.argmax(axis=0) - 1)
+    image[votes.sum(axis=0) == 0] = 255
     return image
 
 
@@ -179,15 +167,6 @@ def save_figure(fig, path: str | Path, dpi: int = 80) -> Path:
     fig.savefig(path, dpi=dpi)
     _pyplot().close(fig)
     return path
-
-
-def _pixels(xy: np.ndarray, sensor_size: tuple[int, int]):
-    height, width = sensor_size
-    xy = np.asarray(xy, dtype=np.float64)
-    col = np.rint(xy[:, 0]).astype(np.int64)
-    row = np.rint(xy[:, 1]).astype(np.int64)
-    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-    return col, row, inside
 
 
 def _pyplot():

@@ -39,6 +39,7 @@ import numpy as np
 
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.errors import ConfigError, ReaderError
+from evseg_torch.event_images import event_counts
 from evseg_torch.io import load_eed_boxes, load_events
 from evseg_torch.metrics import box_intersection, box_iou, box_of_points, boxes_nested
 from evseg_torch.pipeline import CascadedSegmenter
@@ -117,20 +118,12 @@ def cluster_boxes(segmentation, min_count: float = 2.0) -> dict[int, np.ndarray]
         return {}
     sizes = np.bincount(labels[labels >= 0], minlength=segmentation.n_clusters)
     background = int(np.argmax(sizes))
-    pixels = np.rint(segmentation.warped_xy).astype(np.int64)
-    inside = (pixels[:, 0] >= 0) & (pixels[:, 0] < width) & (pixels[:, 1] >= 0) & (pixels[:, 1] < height)
+    counts = event_counts(segmentation.warped_xy, (height, width), labels, n_labels=segmentation.n_clusters)
     boxes = {}
-    for cluster in range(segmentation.n_clusters):
-        if cluster == background:
-            continue
-        own = inside & (labels == cluster)
-        flat = pixels[own, 1] * width + pixels[own, 0]
-        counts = np.bincount(flat, minlength=height * width)
-        dense = np.flatnonzero(counts > min_count)
-        if len(dense):
-            boxes[cluster] = box_of_points(
-                np.column_stack([dense % width, dense // width]).astype(np.float64)
-            )
+    for cluster, image in enumerate(counts):
+        dense = np.argwhere(image > min_count)
+        if cluster != background and len(dense):
+            boxes[cluster] = box_of_points(dense[:, ::-1].astype(np.float64))
     return boxes
 
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from evseg_torch.errors import ShapeError
+from evseg_torch.event_images import event_counts
 from evseg_torch.metrics import convex_hull_mask, mask_iou
 
 CONVEX_HULL_IOU = (
@@ -98,26 +99,18 @@ def predicted_mask(
     Returns:
         The predicted IMO mask.
     """
-    height, width = sensor_size
     warped_xy, labels = np.asarray(warped_xy, dtype=np.float64), np.asarray(labels, dtype=np.int64)
     if warped_xy.shape != (len(labels), 2):
         raise ShapeError(f"warped_xy must be (N, 2) with labels (N,), got {warped_xy.shape}, {labels.shape}")
-    background = background_cluster(labels)
-    keep = (labels >= 0) & (labels != background) & np.all(np.isfinite(warped_xy), axis=1)
-    pixels = np.rint(warped_xy[keep]).astype(np.int64)
-    inside = (pixels[:, 0] >= 0) & (pixels[:, 0] < width) & (pixels[:, 1] >= 0) & (pixels[:, 1] < height)
-    pixels, owner = pixels[inside], labels[keep][inside]
-    mask = np.zeros((height, width), dtype=bool)
-    if not len(owner):
-        return mask
-    clusters, owner = np.unique(owner, return_inverse=True)
-    counts = np.bincount(owner * (height * width) + pixels[:, 1] * width + pixels[:, 0])
-    dense = np.flatnonzero(counts > min_count)
-    cluster_of, flat = np.divmod(dense, height * width)
-    for k in range(len(clusters)):
-        own = flat[cluster_of == k]
-        if len(own):
-            mask |= convex_hull_mask(np.column_stack([own % width, own // width]), sensor_size)
+    imo = (labels >= 0) & (labels != background_cluster(labels))
+    # Renumbered 0..K-1 so that the stack of count images holds only the IMO clusters present.
+    clusters, owner = np.unique(labels[imo], return_inverse=True)
+    counts = event_counts(warped_xy[imo], sensor_size, owner, n_labels=len(clusters))
+    mask = np.zeros(sensor_size, dtype=bool)
+    for image in counts:
+        dense = np.argwhere(image > min_count)
+        if len(dense):
+            mask |= convex_hull_mask(dense[:, ::-1], sensor_size)
     return mask
 
 

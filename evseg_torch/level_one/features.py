@@ -56,6 +56,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
+from evseg_torch.event_images import event_counts
 from evseg_torch.events import EVENT_DTYPE, check_sensor_size
 from evseg_torch.motion import MotionModel
 
@@ -111,6 +112,9 @@ class Tracks(NamedTuple):
 def event_image(xy, sensor_size: tuple[int, int]) -> np.ndarray:
     """Count events per pixel, without motion compensation.
 
+    The counts are :func:`~evseg_torch.event_images.event_counts`'s, except that positions outside the
+    sensor are refused here rather than dropped: level one's images must hold every event of the window.
+
     Args:
         xy: event pixel positions, ``x`` the column and ``y`` the row, :math:`(N, 2)`; float positions
             are rounded to the nearest pixel.
@@ -145,8 +149,7 @@ def event_image(xy, sensor_size: tuple[int, int]) -> np.ndarray:
             f"event {first} at (x={x[first]}, y={y[first]}) lies outside the sensor "
             f"(H, W) = {(height, width)}; check sensor_size"
         )
-    counts = np.bincount(y * width + x, minlength=height * width)
-    return counts.reshape(height, width).astype(np.float32)
+    return event_counts(xy, (height, width)).astype(np.float32)
 
 
 def detect_corners(
