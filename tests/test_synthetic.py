@@ -4,6 +4,7 @@ import pytest
 from scipy.ndimage import binary_dilation
 
 from evseg_torch.errors import ConfigError
+from evseg_torch.event_images import event_counts
 from evseg_torch.events import EVENT_DTYPE, as_events
 from evseg_torch.synthetic import LayerMotion, SyntheticScene, make_scene
 
@@ -23,12 +24,7 @@ def seconds(scene: SyntheticScene, events: np.ndarray | None = None) -> np.ndarr
 def count_image_variance(xy: np.ndarray, sensor_size, margin: int = 64) -> float:
     """Variance of the image of warped event counts (nearest pixel) on the sensor plus a margin."""
     height, width = sensor_size
-    pixels = np.rint(xy).astype(np.int64) + margin
-    shape = (height + 2 * margin, width + 2 * margin)
-    keep = (pixels[:, 0] >= 0) & (pixels[:, 0] < shape[1]) & (pixels[:, 1] >= 0) & (pixels[:, 1] < shape[0])
-    image = np.zeros(shape)
-    np.add.at(image, (pixels[keep, 1], pixels[keep, 0]), 1.0)
-    return float(image.var())
+    return float(event_counts(np.asarray(xy) + margin, (height + 2 * margin, width + 2 * margin)).var())
 
 
 def test_types_and_shapes():
