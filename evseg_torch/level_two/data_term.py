@@ -66,7 +66,7 @@ from torch import Tensor, nn
 
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.iwe import splat_events, warp_events
+from evseg_torch.level_two.iwe import _batch_of_one, extent_mask, splat_events, warp_events
 from evseg_torch.motion import MotionModel
 
 __all__ = ["DataCost", "data_cost", "sample_bilinear"]
@@ -80,7 +80,9 @@ RELATIVE_FLOOR_QUANTILE = 0.9
 """Quantile of all in-image IWE values that floors each event's best value in ``"relative"`` normalisation."""
 
 
-def sample_bilinear(images: Tensor, xy: Tensor, image_index: Tensor | None = None) -> tuple[Tensor, Tensor]:
+def sample_bilinear(
+    images: Tensor, xy: Tensor, image_index: Tensor | None = None, extent: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     r"""Read images by bilinear interpolation at sub-pixel positions (pixel centres at integers).
 
     Args:
@@ -88,10 +90,14 @@ def sample_bilinear(images: Tensor, xy: Tensor, image_index: Tensor | None = Non
         xy: positions :math:`(K, N, 2)`, ``x`` the column and ``y`` the row.
         image_index: which image each position reads, int64 :math:`(K, N)` in ``[0, M)``; by default
             row ``k`` of ``xy`` reads image ``k`` (then ``M`` must equal ``K``).
+        extent: optional int64 ``(height, width)`` of the image each position reads, broadcast against
+            ``xy``, e.g. :math:`(K, 1, 2)`: images of different sizes in the top-left corners of one
+            canvas (see :func:`~evseg_torch.level_two.iwe.splat_events`); a position is read as if its
+            image were only that large.
 
     Returns:
         ``(values, inside)``, both :math:`(K, N)`: the interpolated values (0 where outside) and whether
-        the position lies in :math:`[0, W - 1] \times [0, H - 1]`.
+        the position lies in :math:`[0, W - 1] \times [0, H - 1]` (of its extent, when given).
 
     Examples:
         >>> image = torch.arange(6.0).view(1, 2, 3)
@@ -112,9 +118,16 @@ def sample_bilinear(images: Tensor, xy: Tensor, image_index: Tensor | None = Non
         )
     height, width = images.shape[-2:]
     x, y = xy[..., 0], xy[..., 1]
-    inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
-    col = x.detach().floor().clamp(0, max(width - 2, 0))
-    row = y.detach().floor().clamp(0, max(height - 2, 0))
+    # The top-left tap stays one pixel inside the last row and column (of the extent), where fx or fy is 1.
+    if extent is None:
+        last_row, last_col = height - 1, width - 1
+        top_row, top_col = max(height - 2, 0), max(width - 2, 0)
+    else:
+        last_row, last_col = (extent[..., axis].to(xy.dtype) - 1 for axis in (0, 1))
+        top_row, top_col = (last_row - 1).clamp(min=0), (last_col - 1).clamp(min=0)
+    inside = (x >= 0) & (x <= last_col) & (y >= 0) & (y <= last_row)
+    col = x.detach().floor().clamp(min=0).clamp(max=top_col)
+    row = y.detach().floor().clamp(min=0).clamp(max=top_row)
     fx, fy = (x - col).clamp(0, 1), (y - row).clamp(0, 1)
     if image_index is None:
         image_index = torch.arange(xy.shape[0], device=xy.device)[:, None]
@@ -141,8 +154,9 @@ def data_cost(
     normalization: str = "global",
     polarity: bool = False,
     margin: int | None = 0,
+    valid: Tensor | None = None,
 ) -> Tensor:
-    r"""EMSGC's per-event data cost under each model of a pool, batched over the models.
+    r"""EMSGC's per-event data cost under each model of a pool, batched over the models and windows.
 
     .. math::
 
@@ -152,65 +166,114 @@ def data_cost(
     with :math:`M_k = \max_{m, x} I_m(x)` (``"global"``, EMSGC) or the event's own best value, floored
     (``"relative"``, see the module docstring).
 
+    A padded batch of windows is one computation: every window's IWEs come from one splat and one blur,
+    normalised per window, so each window's costs equal those of the window alone. Windows whose margins
+    (``margin=None``) differ share a canvas of the widest, each image confined to its own extent.
+
     Args:
         model: the motion model.
-        events: the window's events, ``xy`` :math:`(N, 2)` and ``t`` :math:`(N,)` relative to the reference
-            time.
-        params: the pool, :math:`(K, P)`.
+        events: one window, ``xy`` :math:`(N, 2)` and ``t`` :math:`(N,)` relative to the reference
+            time; or a padded batch of B windows (:func:`~evseg_torch.events.batch_windows`).
+        params: the pool, :math:`(K, P)`; for a batch one pool per window, :math:`(B, K, P)`, padded to
+            the largest pool (see ``valid``).
         sensor_size: ``(H, W)``; defaults to ``model.sensor_size``.
         sigma: Gaussian blur of the IWEs in pixels (EMSGC: 1; keep it so that EMSGC's λ values apply).
         normalization: ``"global"`` (EMSGC) or ``"relative"``.
         polarity: read each event from the IWE of its own polarity's events (EMSGC: one IWE of all).
-        margin: pixels the IWEs extend beyond the sensor on every side (EMSGC: 0); ``None`` chooses the
-            smallest margin that holds every warped event, capped at ``max(H, W) / 8`` (see the module
-            docstring).
+        margin: pixels the IWEs extend beyond the sensor on every side (EMSGC: 0); ``None`` chooses, per
+            window, the smallest margin that holds every warped event, capped at ``max(H, W) / 8`` (see
+            the module docstring).
+        valid: for a batch, bool :math:`(B, K)`, which models of each pool are real; ``None`` for all.
+            The others take no part in the normalisation or the margin and cost 255 at every event, so
+            they never win.
 
     Returns:
-        Costs in ``[0, 255]``, :math:`(N, K)`, in the dtype and on the device of ``events``;
-        differentiable with respect to ``params`` (almost everywhere).
+        Costs in ``[0, 255]``, :math:`(N, K)`, or :math:`(B, N_{max}, K)` for a batch (255 at padding
+        events and models), in the dtype and on the device of ``events``; differentiable with respect to
+        ``params`` (almost everywhere).
 
     Raises:
-        ShapeError: if ``params`` is not :math:`(K, P)` with ``K >= 1`` and the model's ``P``.
+        ShapeError: if ``params`` is not :math:`(K, P)` (:math:`(B, K, P)` for a batch) with ``K >= 1``
+            and the model's ``P``, or ``valid`` is not :math:`(B, K)`.
         ConfigError: for an unknown ``normalization``.
 
     Examples:
+        >>> from evseg_torch.events import batch_windows
         >>> from evseg_torch.motion import Translation
         >>> events = EventBatch(torch.rand(100, 2) * 15, torch.rand(100) * 0.01, torch.ones(100))
         >>> data_cost(Translation((16, 16)), events, torch.zeros(3, 2)).shape
         torch.Size([100, 3])
+        >>> fewer = EventBatch(events.xy[:60], events.t[:60], events.p[:60])
+        >>> data_cost(Translation((16, 16)), batch_windows([events, fewer]), torch.zeros(2, 3, 2)).shape
+        torch.Size([2, 100, 3])
     """
-    if params.ndim != 2 or params.shape[0] == 0 or params.shape[1] != model.n_params:
+    batched = events.is_batched
+    expected = (len(events),) if batched else ()
+    if (
+        params.shape[:-2] != expected
+        or params.ndim != len(expected) + 2
+        or params.shape[-2] == 0
+        or params.shape[-1] != model.n_params
+    ):
+        shape = f"(B, K, {model.n_params})" if batched else f"(K, {model.n_params})"
         raise ShapeError(
-            f"params must be (K, {model.n_params}) with K >= 1 for the {model.name} model, "
-            f"got {tuple(params.shape)}"
+            f"params must be {shape} with K >= 1 for the {model.name} model"
+            + (f" and B = {len(events)} windows" if batched else "")
+            + f", got {tuple(params.shape)}"
+        )
+    if valid is not None and (not batched or valid.shape != params.shape[:2]):
+        raise ShapeError(
+            f"valid must be (B, K) = {tuple(params.shape[:-1])} for a batch, got {tuple(valid.shape)}"
         )
     if normalization not in NORMALIZATIONS:
         raise ConfigError(f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}")
     _check_margin(margin)
+    if not batched:
+        events, params = _batch_of_one(events), params[None]
+    n_windows, n_models = params.shape[:2]
     height, width = sensor_size or model.sensor_size
-    warped = warp_events(model, events.xy, events.t, params)
-    if margin is None:
-        margin = _margin(warped, height, width)
-    if margin:
-        warped = warped + margin
-        height, width = height + 2 * margin, width + 2 * margin
+    real = events.mask[:, None]  # (B, 1, N)
+    if valid is not None:
+        real = real & valid[..., None]
+    warped = warp_events(model, events.xy[:, None], events.t[:, None], params)  # (B, K, N, 2)
+    margins = [margin] * n_windows if margin is not None else _margins(warped, real, height, width)
+    widest = max(margins)
+    if widest:
+        warped = warped + warped.new_tensor(margins)[:, None, None, None]
+    size = (height + 2 * widest, width + 2 * widest)
+    extent = None
+    if min(margins) != widest:
+        extent = torch.tensor([[height + 2 * m, width + 2 * m] for m in margins], device=warped.device)
+        extent = extent[:, None]  # (B, 1, 2): the same image size for a window's models
+    read_extent = None if extent is None else extent.expand(-1, n_models, -1).reshape(-1, 1, 2)
+    votes = events.mask[:, None].to(warped.dtype)  # padding votes nothing
     if polarity:
-        iwes = splat_events(warped, (height, width), sigma=sigma, polarity=events.p)  # (K, 2, H, W)
-        # Image 2 k reads model k's positive events, 2 k + 1 its negative ones.
-        own = 2 * torch.arange(params.shape[0], device=params.device)[:, None] + (events.p <= 0).long()
-        values, inside = sample_bilinear(iwes.flatten(0, 1), warped, own)
+        # (B, K, 2, H, W); image 2 (b K + k) reads window b's model k's positive events, the next its others.
+        iwes = splat_events(warped, size, votes, sigma, polarity=events.p[:, None], extent=extent)
+        own = 2 * torch.arange(n_windows * n_models, device=params.device).view(n_windows, n_models, 1)
+        own = own + (events.p <= 0)[:, None].long()
+        values, inside = sample_bilinear(
+            iwes.flatten(0, 2), warped.flatten(0, 1), own.flatten(0, 1), read_extent
+        )
     else:
-        iwes = splat_events(warped, (height, width), sigma=sigma)
-        values, inside = sample_bilinear(iwes, warped)
+        iwes = splat_events(warped, size, votes, sigma, extent=extent)  # (B, K, H, W)
+        values, inside = sample_bilinear(iwes.flatten(0, 1), warped.flatten(0, 1), extent=read_extent)
+    inside = inside.view_as(real.expand(n_windows, n_models, -1)) & real
+    values = values.view_as(inside) * inside
     tiny = torch.finfo(iwes.dtype).tiny
     if normalization == "global":
-        peak = iwes.max().clamp_min(tiny)
+        shown = iwes
+        if extent is not None:
+            shown = shown * extent_mask(extent, size).view(n_windows, *[1] * (iwes.ndim - 3), *size)
+        if valid is not None:
+            shown = shown * valid.view(*valid.shape, *[1] * (iwes.ndim - 2))
+        peak = shown.flatten(1).amax(dim=1).clamp_min(tiny)[:, None, None]
     else:
-        floor = _quantile(values[inside], RELATIVE_FLOOR_QUANTILE) if bool(inside.any()) else tiny
-        peak = values.amax(dim=0).clamp_min(floor).clamp_min(tiny)
+        floor = _quantile(values, inside, RELATIVE_FLOOR_QUANTILE)
+        peak = values.amax(dim=1, keepdim=True).clamp_min(floor.clamp_min(tiny)[:, None, None])
     ratio = (values / peak).clamp(max=1)
-    cost = torch.where(inside, MAX_COST * (1 - ratio), torch.full_like(values, MAX_COST))
-    return cost.T
+    cost = torch.where(inside, MAX_COST * (1 - ratio), torch.full_like(values, MAX_COST)).transpose(1, 2)
+    return cost if batched else cost[0]
 
 
 def _check_margin(margin) -> None:
@@ -218,19 +281,35 @@ def _check_margin(margin) -> None:
         raise ConfigError(f"margin must be a non-negative integer or None, got {margin!r}")
 
 
-def _margin(warped: Tensor, height: int, width: int) -> int:
-    """Smallest whole margin that holds every warped position, capped at an eighth of the larger side."""
-    if warped.numel() == 0:
-        return 0
+def _margins(warped: Tensor, real: Tensor, height: int, width: int) -> list[int]:
+    """Per window, the smallest whole margin that holds every real warped position :math:`(B, K, N, 2)`,
+    capped at an eighth of the larger side."""
     limit = warped.new_tensor([width - 1, height - 1])
-    overshoot = torch.maximum(-warped, warped - limit).amax().item()
-    return min(max(math.ceil(overshoot), 0), math.ceil(max(height, width) / 8))
+    overshoot = torch.maximum(-warped, warped - limit).amax(dim=-1)
+    overshoot = torch.where(real, overshoot, -torch.inf).flatten(1).amax(dim=1)
+    cap = math.ceil(max(height, width) / 8)
+    return [min(math.ceil(max(value, 0.0)), cap) for value in overshoot.tolist()]
 
 
-def _quantile(values: Tensor, q: float) -> Tensor:
-    """``q``-quantile by ``kthvalue`` (no size limit, unlike ``torch.quantile``), without interpolation."""
-    flat = values.detach().reshape(-1)
-    return flat.kthvalue(max(1, round(q * flat.numel()))).values
+def _quantile(values: Tensor, selected: Tensor, q: float) -> Tensor:
+    """Per window, the ``q``-quantile of its selected values, by ``kthvalue`` (no size limit, unlike
+    ``torch.quantile``) and without interpolation; the smallest normal number where none is selected.
+
+    Args:
+        values, selected: :math:`(B, ...)`.
+
+    Returns:
+        :math:`(B,)`.
+    """
+    flat = torch.where(selected, values.detach(), torch.inf).flatten(1)
+    counts = selected.flatten(1).sum(dim=1)
+    ranks = (counts.double() * q).round().clamp_min(1).long()
+    # Each window's rank becomes the largest by as many -inf in front of its values: one kthvalue for all.
+    top = int(ranks.max())
+    lead = torch.arange(top, device=flat.device) < (top - ranks)[:, None]
+    lead = torch.where(lead, -torch.inf, torch.inf).to(flat.dtype)
+    kth = torch.cat([flat, lead], dim=1).kthvalue(top, dim=1).values
+    return torch.where(counts > 0, kth, torch.finfo(flat.dtype).tiny)
 
 
 class DataCost(nn.Module):
@@ -242,11 +321,12 @@ class DataCost(nn.Module):
         sigma: Gaussian blur of the IWEs in pixels.
         normalization: ``"global"`` (EMSGC) or ``"relative"``.
         polarity: read each event from its own polarity's IWE.
-        margin: IWE margin in pixels beyond the sensor; ``None`` chooses it per call.
+        margin: IWE margin in pixels beyond the sensor; ``None`` chooses it per call and window.
 
     Shape:
-        - Input: ``events`` of N events, ``params`` :math:`(K, P)`.
-        - Output: :math:`(N, K)`.
+        - Input: ``events`` of N events, ``params`` :math:`(K, P)`; or a padded batch of B windows,
+          ``params`` :math:`(B, K, P)` and optional ``valid`` :math:`(B, K)`.
+        - Output: :math:`(N, K)`, or :math:`(B, N_{max}, K)`.
     """
 
     def __init__(
@@ -269,7 +349,7 @@ class DataCost(nn.Module):
         self.polarity = bool(polarity)
         self.margin = margin
 
-    def forward(self, events: EventBatch, params: Tensor) -> Tensor:
+    def forward(self, events: EventBatch, params: Tensor, valid: Tensor | None = None) -> Tensor:
         return data_cost(
             self.model,
             events,
@@ -279,6 +359,7 @@ class DataCost(nn.Module):
             self.normalization,
             polarity=self.polarity,
             margin=self.margin,
+            valid=valid,
         )
 
     def extra_repr(self) -> str:

@@ -71,26 +71,41 @@ labelling. On sites, given initial labels are first made constant per site (each
 most frequent label), which can raise the energy of labels that differ within a site; the labels this
 segmenter returns are constant per site already, for the same ``site_time_slices``.
 
-Devices. Events and parameters may live on any device; the data term, refits and images run there. The
-graph and α-expansion run on the CPU (NumPy and PyMaxflow), on copies of the event coordinates and of the
-:math:`(S, K)` cost matrix of the sites. The graph depends on the events only: it is built, and its
-cut-graph node numbering chosen (:func:`~evseg_torch.graphcut.alpha_expansion.potts_graph`), once per
-window.
+Devices. Events and parameters may live on any device; the data term, refits, discovery's fits and the
+images run there. The graph, α-expansion and discovery's grouping of events run on the CPU (NumPy,
+PyMaxflow, OpenCV), on copies of the event coordinates (once per window), of the :math:`(S, K)` cost
+matrices of the sites (once per round) and of the events' own data costs (once per discovery). The graph
+depends on the events only: it is built, and its cut-graph node numbering chosen
+(:func:`~evseg_torch.graphcut.alpha_expansion.potts_graph`), once per window.
+
+Batches. A list or a padded batch of windows is segmented in lockstep: in each round, the data costs of
+every window still running come from one batched call (pools padded to the largest, padded models never
+win), their cost matrices are copied to the CPU at once, each window is labelled by its own graph cut,
+and the refits, and discovery's fits, of all windows are one batched contrast maximisation
+(:class:`~evseg_torch.level_two.contrast.ContrastMaximization`, one optimiser per window and image size,
+evaluated together). Windows that stop drop out of the later rounds. Each window's result equals its
+result alone: on the CPU bit for bit (the data term and the fits' sums are independent of the padding and
+of the other windows), on CUDA up to the rounding of its scatter-adds and reductions, which the descent
+can amplify. The graph cuts run one after the other: PyMaxflow holds the GIL while it computes a maximum
+flow (measured: two cuts in two threads take as long as one after the other), so threads gain nothing.
+On the CPU, where large batched arrays outgrow the caches, a batch is segmented in groups of a few
+hundred thousand events, and the data term in chunks of a window or two (same results).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
 from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
-from evseg_torch.events import EventBatch
-from evseg_torch.graphcut.alpha_expansion import alpha_expansion, potts_graph
+from evseg_torch.events import EventBatch, batch_windows
+from evseg_torch.graphcut.alpha_expansion import PottsGraph, alpha_expansion, potts_graph
 from evseg_torch.level_two.contrast import (
     ContrastMaximization,
     contrast_loss,
@@ -105,7 +120,7 @@ from evseg_torch.level_two.discovery import (
     translation_params,
 )
 from evseg_torch.level_two.graph import event_graph, site_graph
-from evseg_torch.level_two.iwe import warped_iwe
+from evseg_torch.level_two.iwe import _batch_of_one, splat_events, warp_events
 from evseg_torch.motion import MotionModel, make_motion_model
 
 __all__ = ["DEFAULT_SOFT_TEMPERATURE", "GraphCutContrastSegmenter", "LevelTwoResult"]
@@ -115,6 +130,16 @@ __all__ = ["DEFAULT_SOFT_TEMPERATURE", "GraphCutContrastSegmenter", "LevelTwoRes
 _PROPOSAL_MAX_EVENTS = 1500
 # Largest mean change of its region's area (the warp's area element) a proposal may make.
 _MAX_AREA_CHANGE = 0.1
+# On the CPU, a batch is segmented in groups of consecutive windows of at most this many events: batching
+# amortises the refits' and discovery's per-call overhead (measured on 40k-event windows, 2 cores: refits
+# 178 -> 113 ms per window and discovery 401 -> 261 in batches of 8), but batches of 32 lost most of it
+# (157 and 358) to arrays that outgrow the caches.
+_CPU_BATCH_EVENTS = 1 << 18
+# On the CPU, the data term of a batch runs in chunks of windows of at most this many event-model pairs:
+# its dozens of passes over (B, K, N) arrays are bound by memory once these outgrow the caches (measured
+# on 40k-event windows with 4 models, 2 cores: 64-66 ms per window in chunks of 1-2 windows, 80-84 in
+# chunks of 4-8). Other devices cost the whole batch at once. The costs are the same either way.
+_CPU_DATA_TERM_PAIRS = 1 << 18
 
 DEFAULT_SOFT_TEMPERATURE = 20.0
 """Default temperature of :attr:`LevelTwoResult.soft_assignments`, in data-cost units (of ``[0, 255]``).
@@ -163,8 +188,10 @@ class LevelTwoResult:
             surviving clusters; they see no smoothness term, so their argmax may differ from ``labels``
             where the Potts term overruled an event's own cheapest model.
         energy_history: the energy right after each labelling (one per outer round).
-        timings_ms: wall-clock milliseconds spent in ``graph``, ``data_term``, ``labelling``, ``refit``
-            and ``images`` (asynchronous devices are not synchronised: there, ``images`` absorbs the rest).
+        timings_ms: wall-clock milliseconds spent in ``graph``, ``data_term``, ``labelling``, ``refit``,
+            ``discovery`` and ``images`` (asynchronous devices are not synchronised: there, the stages
+            that copy to the CPU absorb the rest). A stage run for several windows of a batch at once is
+            shared evenly by them, so the windows' timings add up to the batch's.
     """
 
     labels: Tensor
@@ -189,6 +216,66 @@ def _check_events(events) -> EventBatch:
             f"{tuple(events.t.shape)}, {tuple(events.p.shape)}"
         )
     return events
+
+
+_STAGES = ("graph", "data_term", "labelling", "refit", "discovery", "images")
+
+
+@dataclass
+class _Window:
+    """One window's block-coordinate descent as the segmenter steps it, round by round.
+
+    ``sites`` maps each event to its graph-cut node (the event itself without sites), ``xy`` holds its
+    integer pixels on the CPU (for discovery), ``event_cost`` the last data costs :math:`(N, K)` and
+    ``node_cost`` their sums per node for the graph cut; ``step`` is what follows the last labelling:
+    ``"refit"``, ``"propose"`` (discovery), ``"label"`` (again, with proposals) or ``"stop"``.
+    """
+
+    index: int
+    events: EventBatch
+    xy: np.ndarray
+    graph: PottsGraph
+    sites: np.ndarray
+    n_sites: int
+    params: Tensor
+    labels: np.ndarray | None
+    node_labels: np.ndarray | None
+    rounds_left: int
+    discoveries_left: int
+    history: list[float] = field(default_factory=list)
+    proposed_from: int | None = None
+    event_cost: Tensor | None = None
+    node_cost: np.ndarray | None = None
+    keep: np.ndarray | None = None
+    step: str = "label"
+
+
+class _Candidates(NamedTuple):
+    """One window's candidate regions for discovery: their members :math:`(R, N)` (an even subsample),
+    the start of each one's fit and the model of the cluster it came from :math:`(R, P)`, and its
+    gathered events and weights :math:`(R, n)`."""
+
+    members: Tensor
+    start: Tensor
+    origin: Tensor
+    own: EventBatch
+    weights: Tensor
+
+
+class _Clock:
+    """Wall-clock milliseconds per stage and window; a stage run for several windows at once is shared
+    evenly by them, so the windows' timings add up to the batch's."""
+
+    def __init__(self, n_windows: int) -> None:
+        self.timings = [dict.fromkeys(_STAGES, 0.0) for _ in range(n_windows)]
+        self._last = time.perf_counter()
+
+    def lap(self, stage: str, windows: Sequence[_Window]) -> None:
+        now = time.perf_counter()
+        share = 1e3 * (now - self._last) / len(windows)
+        for window in windows:
+            self.timings[window.index][stage] += share
+        self._last = now
 
 
 class GraphCutContrastSegmenter(nn.Module):
@@ -398,6 +485,9 @@ class GraphCutContrastSegmenter(nn.Module):
     ) -> LevelTwoResult | list[LevelTwoResult]:
         r"""Segment one window, or each window of a list or of a padded batch.
 
+        The windows of a list or batch are segmented together (module docstring, "Batches"); each
+        window's result equals its result alone.
+
         Args:
             events: one window (:class:`~evseg_torch.events.EventBatch`, ``t`` relative to the reference
                 time), a list of windows, or a padded batch of windows
@@ -415,25 +505,28 @@ class GraphCutContrastSegmenter(nn.Module):
             EventFormatError: if ``events`` is not an EventBatch (or a list of them) or a window is empty.
             ShapeError: if ``init_params`` or ``init_labels`` has the wrong shape or values.
         """
-        if isinstance(events, EventBatch) and events.is_batched:
-            # Each window's graph cut runs on the CPU on its own graph and pool, so the windows of a batch
-            # are segmented one after the other, without their padding.
+        if isinstance(events, EventBatch) and not events.is_batched:
+            return self._segment(
+                _batch_of_one(_check_events(events)), [events], [init_params], [init_labels]
+            )[0]
+        if isinstance(events, EventBatch):
+            windows = [_check_events(window) for window in events.unbatch()]
+            batch = events
             if isinstance(init_labels, (Tensor, np.ndarray)) and init_labels.ndim == 2:
                 if tuple(init_labels.shape) != tuple(events.t.shape):
                     raise ShapeError(
                         f"init_labels of a padded batch must be (B, N_max) = {tuple(events.t.shape)}, "
                         f"got {tuple(init_labels.shape)}"
                     )
-                lengths = events.lengths.tolist()
-                init_labels = [row[:count] for row, count in zip(init_labels, lengths, strict=True)]
-            events = events.unbatch()
-        if isinstance(events, EventBatch):
-            return self._segment(events, init_params, init_labels)
-        if not isinstance(events, Sequence) or isinstance(events, str):
+                init_labels = [row[: len(window)] for row, window in zip(init_labels, windows, strict=True)]
+        elif isinstance(events, Sequence) and not isinstance(events, str):
+            windows = [_check_events(window) for window in events]
+            batch = batch_windows(windows) if windows else None
+        else:
             raise EventFormatError(
                 f"events must be an EventBatch or a list of them, got {type(events).__name__}"
             )
-        count = len(events)
+        count = len(windows)
         if isinstance(init_params, Tensor) and init_params.ndim != 3:
             pools = [init_params] * count
         else:
@@ -443,7 +536,7 @@ class GraphCutContrastSegmenter(nn.Module):
             raise ShapeError(
                 f"got {count} windows but {len(pools)} pools and {len(labels)} initial labellings"
             )
-        return [self._segment(*args) for args in zip(events, pools, labels, strict=True)]
+        return self._segment(batch, windows, pools, labels) if count else []
 
     def contrast_loss(self, events: EventBatch, params: Tensor, labels: Tensor | None = None) -> Tensor:
         r"""Differentiable negative contrast of each cluster's own events under its model.
@@ -462,7 +555,9 @@ class GraphCutContrastSegmenter(nn.Module):
         """
         events = _check_events(events)
         weights = (
-            None if labels is None else self._one_hot(self._check_labels(labels, events, params), params)
+            None
+            if labels is None
+            else _members(self._check_labels(labels, events, params), params.shape[0], params.dtype)
         )
         return contrast_loss(
             self.model,
@@ -474,26 +569,73 @@ class GraphCutContrastSegmenter(nn.Module):
             sigma=self.sigma,
         )
 
-    def _segment(self, events: EventBatch, init_params: Tensor, init_labels) -> LevelTwoResult:
-        events = _check_events(events)
+    def _segment(
+        self, batch: EventBatch, windows: list[EventBatch], pools: list, init_labels: list
+    ) -> list[LevelTwoResult]:
+        """Segment the windows of ``batch`` together; on the CPU in groups of consecutive windows."""
+        budget = _CPU_BATCH_EVENTS if batch.xy.device.type == "cpu" else None
+        groups = _chunks([len(window) for window in windows], budget)
+        if len(groups) == 1:
+            return self._segment_together(batch, windows, pools, init_labels)
+        results = []
+        for group in groups:
+            own = [windows[index] for index in group]
+            results += self._segment_together(
+                batch_windows(own),
+                own,
+                [pools[index] for index in group],
+                [init_labels[index] for index in group],
+            )
+        return results
+
+    def _segment_together(
+        self, batch: EventBatch, windows: list[EventBatch], pools: list, init_labels: list
+    ) -> list[LevelTwoResult]:
+        """The block-coordinate descent of every window of ``batch``, in lockstep (module docstring)."""
+        clock = _Clock(len(windows))
+        states = []
+        for index, (events, pool, labels) in enumerate(zip(windows, pools, init_labels, strict=True)):
+            states.append(self._start(index, events, pool, labels))
+            clock.lap("graph", states[-1:])
+        site_index = _padded_rows([state.sites for state in states], batch.t.shape[1], device=batch.xy.device)
+        active = states
+        while active:
+            self._data_costs(batch, active, site_index)
+            clock.lap("data_term", active)
+            for state in active:
+                self._label(state)
+                clock.lap("labelling", [state])
+            proposing = [state for state in active if state.step == "propose"]
+            if proposing:
+                self._discover(_select(batch, proposing), proposing)
+                clock.lap("discovery", proposing)
+            for refit, first in ((self.refit, True), (self.warm_refit, False)):
+                # Only the first refit of a window starts from the initial pool (see warm_max_iter).
+                chosen = [
+                    state for state in active if state.step == "refit" and (len(state.history) == 1) == first
+                ]
+                if chosen:
+                    self._refit(refit, _select(batch, chosen), chosen)
+                    clock.lap("refit", chosen)
+            active = [state for state in active if state.step != "stop"]
+        results = self._results(batch, states)
+        clock.lap("images", states)
+        return [
+            replace(result, timings_ms=timings)
+            for result, timings in zip(results, clock.timings, strict=True)
+        ]
+
+    def _start(self, index: int, events: EventBatch, init_params: Tensor, init_labels) -> _Window:
+        """A window's graph and starting point."""
         params = self._check_params(init_params, events)
         labels = (
             None if init_labels is None else self._check_labels(init_labels, events, params).cpu().numpy()
         )
-        timings = dict.fromkeys(("graph", "data_term", "labelling", "refit", "discovery", "images"), 0.0)
-        clock = time.perf_counter()
-
-        def lap(name: str) -> None:
-            nonlocal clock
-            now = time.perf_counter()
-            timings[name] += 1e3 * (now - clock)
-            clock = now
-
         if self.site_time_slices is None:
-            sites = None
             edges, weights = event_graph(
                 events, sensor_size=self.sensor_size, temporal_edges=self.temporal_edges
             )
+            sites = np.arange(len(events))
         else:
             sites, edges, weights = site_graph(
                 events,
@@ -501,89 +643,229 @@ class GraphCutContrastSegmenter(nn.Module):
                 time_slices=self.site_time_slices,
                 temporal_edges=self.temporal_edges,
             )
-        n_sites = len(events) if sites is None else int(sites.max()) + 1
+        n_sites = int(sites.max()) + 1
         # Sites are numbered in row-major pixel order, already local; events are in time order.
-        graph = potts_graph(edges, weights, n_nodes=n_sites, reorder=sites is None)
-        sites_t = None if sites is None else torch.as_tensor(sites, device=events.xy.device)
-        node_labels = labels if labels is None or sites is None else _site_majority(labels, sites, n_sites)
-        lap("graph")
-        history: list[float] = []
-        rounds_left, discoveries_left = self.n_iter_segmentation, self.discovery_rounds
-        proposed_from = None
-        while rounds_left > 0:
-            rounds_left -= 1
-            with torch.no_grad():
-                event_cost = self.data_term(events, params)
-                cost = self.lambda_data * event_cost
-                if sites_t is not None:
-                    cost = cost.new_zeros(n_sites, cost.shape[1]).index_add_(0, sites_t, cost)
-            cost = cost.cpu().numpy().astype(np.float64)
-            lap("data_term")
-            result = alpha_expansion(
-                cost,
-                graph,
-                smoothness=self.lambda_smooth,
-                label_cost=self._label_cost(len(events)),
-                init_labels=node_labels,
-                max_cycles=self.n_iter_labeling,
-            )
-            event_labels = result.labels if sites is None else result.labels[sites]
-            mapping, keep = _renumber_by_size(event_labels, params.shape[0])
-            node_labels, new_labels = mapping[result.labels], mapping[event_labels]
-            params = params[torch.as_tensor(keep, device=params.device)]
-            converged = (
-                len(keep) == 1
-                or (bool(history) and result.energy == history[-1])
-                or (labels is not None and _changed(labels, new_labels, keep) <= self.label_tol)
-            )
-            if proposed_from is not None and not np.any(keep >= proposed_from):
-                discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
-            proposed_from = None
-            labels = new_labels
-            history.append(result.energy)
-            lap("labelling")
-            if (converged or rounds_left == 0) and discoveries_left > 0:
-                discoveries_left -= 1
-                own = event_cost[
-                    torch.arange(len(events)), torch.as_tensor(keep[labels], device=event_cost.device)
-                ]
-                proposals = self._propose(events, labels, own, params)
-                lap("discovery")
-                if len(proposals):
-                    # The proposals are fitted already: the next labelling decides which are used.
-                    proposed_from = params.shape[0]
-                    params = torch.cat([params, proposals])
-                    rounds_left = max(rounds_left, 1) + 1
-                    continue
-            if converged or rounds_left == 0:
-                break
-            labels_t = torch.as_tensor(labels, device=events.xy.device)
-            members = self._one_hot(labels_t, params)
-            if self.refit_max_events is not None:
-                members = _subsample(members, self.refit_max_events)
-            refit = self.refit if len(history) == 1 else self.warm_refit
-            with torch.enable_grad():
-                params = refit(events, params, members).detach()
-            lap("refit")
-        labels_t = torch.as_tensor(labels, device=events.xy.device)
-        # The loop only leaves through the break right after a labelling (refits and proposals are always
-        # followed by another round), so the final models are that labelling's survivors ``keep``, and
-        # ``event_cost[:, keep]`` are their data costs as the labelling saw them: no data-term pass more.
-        final_cost = event_cost[:, torch.as_tensor(keep, device=event_cost.device)]
-        soft = torch.softmax(final_cost / -self.soft_temperature, dim=1)
-        with torch.no_grad():
-            iwes = warped_iwe(
-                self.model, events, params, self._one_hot(labels_t, params), self.sensor_size, sigma=0.0
-            )
-        lap("images")
-        return LevelTwoResult(
-            labels=labels_t,
+        graph = potts_graph(edges, weights, n_nodes=n_sites, reorder=self.site_time_slices is None)
+        node_labels = labels
+        if labels is not None and self.site_time_slices is not None:
+            node_labels = _site_majority(labels, sites, n_sites)
+        return _Window(
+            index=index,
+            events=events,
+            xy=events.xy.detach().cpu().numpy().astype(np.int64),
+            graph=graph,
+            sites=sites,
+            n_sites=n_sites,
             params=params,
-            iwes=iwes,
-            soft_assignments=soft,
-            energy_history=tuple(history),
-            timings_ms=timings,
+            labels=labels,
+            node_labels=node_labels,
+            rounds_left=self.n_iter_segmentation,
+            discoveries_left=self.discovery_rounds,
         )
+
+    def _data_costs(self, batch: EventBatch, states: list[_Window], site_index: Tensor) -> None:
+        """The windows' data costs, batched, and the graph cuts' cost matrices, copied to the CPU at once.
+
+        Args:
+            batch: the padded batch of all windows.
+            states: the windows to cost.
+            site_index: each event's graph-cut node, -1 on the padding, int64 :math:`(B, N_{max})` for
+                every window of ``batch``.
+        """
+        budget = _CPU_DATA_TERM_PAIRS if batch.xy.device.type == "cpu" else None
+        pairs = [len(state.events) * state.params.shape[0] for state in states]
+        for chunk in _chunks(pairs, budget):
+            chunk = [states[index] for index in chunk]
+            events = _select(batch, chunk)
+            params, valid = _padded_pools([state.params for state in chunk])
+            n_nodes = max(state.n_sites for state in chunk) + 1  # the last for the padding
+            with torch.no_grad():
+                cost = self.data_term(events, params, valid)  # (B, N_max, K)
+                own = site_index[[state.index for state in chunk], : events.t.shape[1]]
+                rows = torch.arange(len(chunk), device=own.device)[:, None]
+                nodes = n_nodes * rows + torch.where(own < 0, n_nodes - 1, own)
+                node_cost = cost.new_zeros(len(chunk) * n_nodes, cost.shape[2])
+                node_cost = node_cost.index_add_(0, nodes.flatten(), (self.lambda_data * cost).flatten(0, 1))
+            # The graph cuts run on the CPU: the one copy back of each round.
+            node_cost = node_cost.view(len(chunk), n_nodes, -1).cpu().numpy()
+            for row, state in enumerate(chunk):
+                n_events, n_models = len(state.events), state.params.shape[0]
+                state.event_cost = cost[row, :n_events, :n_models]
+                state.node_cost = node_cost[row, : state.n_sites, :n_models].astype(np.float64)
+
+    def _label(self, state: _Window) -> None:
+        """One labelling of a window by α-expansion, then its renumbering and what comes next."""
+        state.rounds_left -= 1
+        result = alpha_expansion(
+            state.node_cost,
+            state.graph,
+            smoothness=self.lambda_smooth,
+            label_cost=self._label_cost(len(state.events)),
+            init_labels=state.node_labels,
+            max_cycles=self.n_iter_labeling,
+        )
+        event_labels = result.labels[state.sites]
+        mapping, keep = _renumber_by_size(event_labels, state.params.shape[0])
+        state.node_labels, labels = mapping[result.labels], mapping[event_labels]
+        state.params = state.params[torch.as_tensor(keep, device=state.params.device)]
+        converged = (
+            len(keep) == 1
+            or (bool(state.history) and result.energy == state.history[-1])
+            or (state.labels is not None and _changed(state.labels, labels, keep) <= self.label_tol)
+        )
+        if state.proposed_from is not None and not np.any(keep >= state.proposed_from):
+            state.discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
+        state.proposed_from = None
+        state.labels, state.keep = labels, keep
+        state.history.append(result.energy)
+        done = converged or state.rounds_left == 0
+        if done and state.discoveries_left > 0:
+            state.discoveries_left -= 1
+            state.step = "propose"
+        else:
+            state.step = "stop" if done else "refit"
+
+    def _discover(self, events: EventBatch, states: list[_Window]) -> None:
+        """Propose models for the windows' candidate regions; a window with proposals labels again.
+
+        The regions and the fits' starts are found per window (NumPy and a few small tensor operations);
+        the fits, most of discovery's time, run for all windows at once.
+        """
+        own = [
+            state.event_cost.gather(
+                1, torch.as_tensor(state.keep[state.labels], device=events.xy.device)[:, None]
+            )
+            for state in states
+        ]
+        # Discovery groups events on the CPU: the one copy back, for all windows.
+        own = nn.utils.rnn.pad_sequence(own, batch_first=True)[..., 0].cpu().numpy()
+        candidates = []
+        for row, state in enumerate(states):
+            regions = candidate_regions(
+                state.xy,
+                state.labels,
+                own[row, : len(state.events)],
+                self.sensor_size,
+                min_events=self.discovery_min_events,
+                residual_cost=self.discovery_residual_cost,
+                radius=self.discovery_radius,
+            )
+            candidates.append(self._proposal_starts(state, regions[: self.discovery_max_proposals]))
+        counts = [len(candidate.start) for candidate in candidates]
+        fitted = [candidate.start for candidate in candidates]
+        if any(counts):
+            # One pool of proposals per window, padded to the most regions; padding has no events.
+            start = events.xy.new_zeros(len(states), max(counts), self.model.n_params)
+            members = events.xy.new_zeros(len(states), max(counts), events.t.shape[1])
+            for row, candidate in enumerate(candidates):
+                start[row, : counts[row]] = candidate.start
+                members[row, : counts[row], : candidate.members.shape[1]] = candidate.members
+            fitted = self.proposal_fit(events, start, members)
+        for row, (state, candidate) in enumerate(zip(states, candidates, strict=True)):
+            proposed = self._accepted(candidate, fitted[row][: counts[row]])
+            if len(proposed):
+                # The proposals are fitted already: the next labelling decides which are used.
+                state.proposed_from = state.params.shape[0]
+                state.params = torch.cat([state.params, proposed])
+                state.rounds_left = max(state.rounds_left, 1) + 1
+                state.step = "label"
+            else:
+                state.step = "stop"
+
+    def _proposal_starts(self, state: _Window, regions: list[tuple[int, np.ndarray]]) -> _Candidates:
+        """The regions of one window (:func:`~evseg_torch.level_two.discovery.candidate_regions`) and the
+        start of each one's fit."""
+        params, device = state.params, state.params.device
+        members = params.new_zeros(len(regions), len(state.events))
+        if not regions:
+            empty = params.new_zeros(0, params.shape[1])
+            return _Candidates(members, empty, empty, *gather_members(state.events, members))
+        sizes = [len(region) for _, region in regions]
+        rows = torch.as_tensor(np.repeat(np.arange(len(regions)), sizes), device=device)
+        members[rows, torch.as_tensor(np.concatenate([region for _, region in regions]), device=device)] = 1.0
+        members = _subsample(members, _PROPOSAL_MAX_EVENTS)
+        origin = params[torch.as_tensor([cluster for cluster, _ in regions], device=device)]
+        own, weights = gather_members(state.events, members)
+        velocity = centroid_velocity(own, weights)
+        translation = translation_params(self.model, own.xy, weights, velocity)
+        starts = torch.stack([recentred(self.model, own.xy, weights, origin, velocity), translation])
+        with torch.no_grad():
+            # Of the two starts, the fit continues from the sharper one: an optimiser's iterations on
+            # the other would mostly be spent where the first already is.
+            sharper = self._region_loss(own, starts.flatten(0, 1), weights).view(2, -1).argmin(dim=0)
+        start = starts[sharper, torch.arange(len(regions), device=device)]
+        return _Candidates(members, start, origin, own, weights)
+
+    def _accepted(self, candidate: _Candidates, fitted: Tensor) -> Tensor:
+        """The fitted proposals :math:`(R, P)` of one window that sharpen their regions without collapse."""
+        if not len(fitted):
+            return fitted
+        with torch.no_grad():
+            losses = self._region_loss(
+                candidate.own, torch.cat([candidate.origin, fitted]), candidate.weights
+            )
+            losses = losses.view(2, -1)
+            # A proposal that compensates its region less sharply than the region's own model is none.
+            keep = losses[1] <= (1.0 + self.discovery_min_gain) * losses[0]
+            # Event collapse (reference §5): a fit that shrinks or swells its region's area by more than
+            # _MAX_AREA_CHANGE on average has piled events up, not found a motion.
+            weights = candidate.weights
+            area = (warp_area_element(self.model, candidate.own, fitted) * weights).sum(dim=1) / weights.sum(
+                dim=1
+            )
+            keep &= (area - 1.0).abs() <= _MAX_AREA_CHANGE
+        return fitted[keep]
+
+    def _region_loss(self, events: EventBatch, params: Tensor, weights: Tensor) -> Tensor:
+        """Contrast loss of ``params`` (two rows per region) on the gathered regions' events."""
+        return contrast_loss(
+            self.model,
+            EventBatch(events.xy.repeat(2, 1, 1), events.t.repeat(2, 1), events.p.repeat(2, 1)),
+            params,
+            weights.repeat(2, 1),
+            sensor_size=self.sensor_size,
+            objective=self.objective,
+            sigma=self.sigma,
+        )
+
+    def _refit(self, refit: ContrastMaximization, events: EventBatch, states: list[_Window]) -> None:
+        """Refit every cluster of the windows by contrast maximisation of its own events, all at once."""
+        params, _ = _padded_pools([state.params for state in states])
+        labels = _padded_rows([state.labels for state in states], events.t.shape[1], device=events.xy.device)
+        members = _members(labels, params.shape[1], params.dtype)
+        if self.refit_max_events is not None:
+            members = _subsample(members, self.refit_max_events)
+        with torch.enable_grad():
+            fitted = refit(events, params, members).detach()
+        for row, state in enumerate(states):
+            state.params = fitted[row, : state.params.shape[0]]
+
+    def _results(self, batch: EventBatch, states: list[_Window]) -> list[LevelTwoResult]:
+        """Each window's result; the images of all windows come from one splat."""
+        device = batch.xy.device
+        labels = _padded_rows([state.labels for state in states], batch.t.shape[1], device=device)
+        params, _ = _padded_pools([state.params for state in states])
+        members = _members(labels, params.shape[1], params.dtype)
+        with torch.no_grad():
+            warped = warp_events(self.model, batch.xy[:, None], batch.t[:, None], params)
+            iwes = splat_events(warped, self.sensor_size, members, sigma=0.0)
+        results = []
+        for row, state in enumerate(states):
+            n_models = state.params.shape[0]
+            # The loop only leaves a window right after a labelling (refits and proposals are always
+            # followed by another round), so its final models are that labelling's survivors ``keep``,
+            # and ``event_cost[:, keep]`` are their data costs as the labelling saw them.
+            final_cost = state.event_cost[:, torch.as_tensor(state.keep, device=device)]
+            results.append(
+                LevelTwoResult(
+                    labels=labels[row, : len(state.events)],
+                    params=state.params,
+                    iwes=iwes[row, :n_models],
+                    soft_assignments=torch.softmax(final_cost / -self.soft_temperature, dim=1),
+                    energy_history=tuple(state.history),
+                )
+            )
+        return results
 
     def _label_cost(self, n_events: int) -> float:
         """The label cost of a window of ``n_events``: ``lambda_label``, times
@@ -591,60 +873,6 @@ class GraphCutContrastSegmenter(nn.Module):
         if self.label_cost_events is None:
             return self.lambda_label
         return self.lambda_label * max(1.0, n_events / self.label_cost_events)
-
-    def _propose(self, events: EventBatch, labels: np.ndarray, own_cost: Tensor, params: Tensor) -> Tensor:
-        """Models fitted to the regions of :func:`~evseg_torch.level_two.discovery.candidate_regions`."""
-        xy = events.xy.detach().cpu().numpy().astype(np.int64)
-        regions = candidate_regions(
-            xy,
-            labels,
-            own_cost.cpu().numpy(),
-            self.sensor_size,
-            min_events=self.discovery_min_events,
-            residual_cost=self.discovery_residual_cost,
-            radius=self.discovery_radius,
-        )
-        regions = regions[: self.discovery_max_proposals]
-        if not regions:
-            return params.new_zeros(0, params.shape[1])
-        members = params.new_zeros(len(regions), len(events))
-        for row, (_, region) in enumerate(regions):
-            members[row, torch.as_tensor(region, device=members.device)] = 1.0
-        members = _subsample(members, _PROPOSAL_MAX_EVENTS)
-        origin = params[torch.as_tensor([cluster for cluster, _ in regions], device=params.device)]
-        own, weights = gather_members(events, members)
-        velocity = centroid_velocity(own, weights)
-        translation = translation_params(self.model, own.xy, weights, velocity)
-        gathered = EventBatch(own.xy.repeat(2, 1, 1), own.t.repeat(2, 1), own.p.repeat(2, 1))
-        starts = torch.stack([recentred(self.model, own.xy, weights, origin, velocity), translation])
-        with torch.no_grad():
-            # Of the two starts, the fit continues from the sharper one: an optimiser's iterations on
-            # the other would mostly be spent where the first already is.
-            sharper = self._region_loss(gathered, starts.flatten(0, 1), weights).view(2, -1).argmin(dim=0)
-        start = starts[sharper, torch.arange(len(regions))]
-        fitted = self.proposal_fit(events, start, members)
-        with torch.no_grad():
-            losses = self._region_loss(gathered, torch.cat([origin, fitted]), weights).view(2, -1)
-        # A proposal that compensates its region less sharply than the region's own model is no proposal.
-        keep = losses[1] <= (1.0 + self.discovery_min_gain) * losses[0]
-        # Event collapse (reference §5): a fit that shrinks or swells its region's area by more than
-        # _MAX_AREA_CHANGE on average has piled events up, not found a motion.
-        with torch.no_grad():
-            area = (warp_area_element(self.model, own, fitted) * weights).sum(dim=1) / weights.sum(dim=1)
-        keep &= (area - 1.0).abs() <= _MAX_AREA_CHANGE
-        return fitted[keep]
-
-    def _region_loss(self, events: EventBatch, params: Tensor, weights: Tensor) -> Tensor:
-        """Contrast loss of ``params`` (two rows per region) on the gathered regions' events."""
-        return contrast_loss(
-            self.model,
-            events,
-            params,
-            weights.repeat(2, 1),
-            sensor_size=self.sensor_size,
-            objective=self.objective,
-            sigma=self.sigma,
-        )
 
     def _check_params(self, params, events: EventBatch) -> Tensor:
         if not isinstance(params, Tensor):
@@ -670,10 +898,6 @@ class GraphCutContrastSegmenter(nn.Module):
                 f"labels must lie in [0, {params.shape[0]}) to index the {params.shape[0]} models"
             )
         return labels.long()
-
-    @staticmethod
-    def _one_hot(labels: Tensor, params: Tensor) -> Tensor:
-        return nn.functional.one_hot(labels, params.shape[0]).T.to(params.dtype)
 
 
 def _renumber_by_size(labels: np.ndarray, n_labels: int) -> tuple[np.ndarray, np.ndarray]:
@@ -701,13 +925,60 @@ def _changed(old: np.ndarray, new: np.ndarray, keep: np.ndarray) -> float:
     return float(np.mean(keep[new] != old))
 
 
+def _members(labels: Tensor, n_clusters: int, dtype: torch.dtype) -> Tensor:
+    """One-hot memberships :math:`(..., K, N)` of labels :math:`(..., N)`; label -1 (padding) is in none."""
+    return (labels[..., None, :] == torch.arange(n_clusters, device=labels.device)[:, None]).to(dtype)
+
+
 def _subsample(weights: Tensor, max_events: int) -> Tensor:
     """Keep every s-th member of each cluster (in event order), s chosen so that at most ``max_events`` stay.
 
     Args:
-        weights: one-hot memberships :math:`(K, N)`.
+        weights: one-hot memberships :math:`(..., K, N)`.
     """
-    counts = weights.sum(dim=1, keepdim=True)
+    counts = weights.sum(dim=-1, keepdim=True)
     stride = torch.ceil(counts / max_events).clamp_min(1)
-    rank = torch.cumsum(weights, dim=1) - 1
+    rank = torch.cumsum(weights, dim=-1) - 1
     return weights * (torch.remainder(rank, stride) == 0)
+
+
+def _chunks(sizes: Sequence[int], budget: int | None) -> list[list[int]]:
+    """Consecutive indices of ``sizes`` in chunks whose sizes add up to at most ``budget`` (each chunk
+    holds one at least); one chunk of all for ``budget`` ``None``."""
+    chunks, total = [[]], 0
+    for index, size in enumerate(sizes):
+        total += size
+        if chunks[-1] and budget is not None and total > budget:
+            chunks.append([])
+            total = size
+        chunks[-1].append(index)
+    return chunks
+
+
+def _select(batch: EventBatch, states: Sequence[_Window]) -> EventBatch:
+    """The windows of ``states`` from the padded batch (itself when it holds just them), padded to the
+    longest of them."""
+    rows = [state.index for state in states]
+    if rows == list(range(len(batch))):
+        return batch
+    index = torch.as_tensor(rows, device=batch.xy.device)
+    longest = max(len(state.events) for state in states)
+    xy, t, p, lengths = (field[index] for field in batch)
+    return EventBatch(xy[:, :longest], t[:, :longest], p[:, :longest], lengths)
+
+
+def _padded_rows(rows: Sequence[np.ndarray], length: int, device: torch.device) -> Tensor:
+    """Integer rows :math:`(n_b,)` as one int64 tensor :math:`(B, L)`, ``L = length``, padded with -1,
+    moved to ``device`` in one copy."""
+    padded = np.full((len(rows), length), -1, dtype=np.int64)
+    for index, row in enumerate(rows):
+        padded[index, : len(row)] = row
+    return torch.as_tensor(padded, device=device)
+
+
+def _padded_pools(pools: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+    """Pools :math:`(K_b, P)` as one tensor :math:`(B, K, P)` padded with zeros, and which models are
+    real, bool :math:`(B, K)`."""
+    params = nn.utils.rnn.pad_sequence(list(pools), batch_first=True)
+    counts = torch.tensor([len(pool) for pool in pools], device=params.device)
+    return params, torch.arange(params.shape[1], device=params.device) < counts[:, None]

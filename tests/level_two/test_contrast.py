@@ -10,6 +10,8 @@ from evseg_torch.level_two.contrast import (
     ContrastMaximization,
     _crops,
     _LinearWarp,
+    _lockstep,
+    _sum_ignoring_padding,
     contrast_loss,
     gather_members,
     image_variance,
@@ -17,7 +19,7 @@ from evseg_torch.level_two.contrast import (
     padded_contrast_loss,
     warp_area_element,
 )
-from evseg_torch.level_two.iwe import splat_events
+from evseg_torch.level_two.iwe import extent_mask, splat_events
 from evseg_torch.motion import Affine4, Rotation3D, Translation
 from tests.level_two._events import displacement_error, edge_points, moving_events
 
@@ -79,6 +81,44 @@ class TestObjectives:
         spread = splat_events(torch.rand(50, 2) * 8, (9, 9))
         assert image_variance(stacked) > image_variance(spread)
         assert normalized_variance(stacked, spread) > 1
+
+
+class TestMaskedVariance:
+    def test_equals_the_variance_of_each_image_alone(self, device, dtype):
+        images = torch.rand(2, 7, 9, device=device, dtype=dtype)
+        extent = torch.tensor([[5, 6], [7, 9]], device=device)
+        mask = extent_mask(extent, (7, 9))
+        masked = image_variance(images, mask=mask)
+        torch.testing.assert_close(masked[0], image_variance(images[0, :5, :6]))
+        torch.testing.assert_close(masked[1], image_variance(images[1]))
+        torch.testing.assert_close(
+            normalized_variance(images, images.flip(0), mask=mask)[1],
+            normalized_variance(images[1], images[0]),
+        )
+
+    def test_bit_for_bit_in_any_canvas(self):
+        # The same image with its gradient, alone and in a larger canvas whatever lies beyond it.
+        image = torch.rand(5, 6, dtype=torch.float64, requires_grad=True)
+        canvas = torch.rand(9, 11, dtype=torch.float64)
+        embedded = canvas.index_put((torch.arange(5)[:, None], torch.arange(6)), image)
+        alone = image_variance(image, mask=torch.ones(5, 6, dtype=torch.bool))
+        within = image_variance(embedded, mask=extent_mask(torch.tensor([5, 6]), (9, 11)))
+        assert torch.equal(alone, within)
+        assert torch.equal(*(torch.autograd.grad(value, image)[0] for value in (alone, within)))
+
+    def test_gradcheck(self):
+        images = torch.rand(2, 5, 6, dtype=torch.float64, requires_grad=True)
+        mask = extent_mask(torch.tensor([[3, 4], [5, 6]]), (5, 6))
+        assert torch.autograd.gradcheck(lambda x: image_variance(x, mask=mask), (images,), fast_mode=True)
+
+
+class TestSumIgnoringPadding:
+    @pytest.mark.parametrize("length", [1, 255, 256, 257, 1000])
+    def test_zeros_appended_change_nothing(self, length, dtype):
+        values = torch.randn(3, length, dtype=dtype) * 100
+        padded = torch.cat([values, torch.zeros(3, 300, dtype=dtype)], dim=1)
+        assert torch.equal(_sum_ignoring_padding(values), _sum_ignoring_padding(padded))
+        torch.testing.assert_close(_sum_ignoring_padding(values), values.sum(dim=1))
 
 
 class TestContrastLoss:
@@ -298,6 +338,118 @@ class TestContrastMaximization:
         assert "optimizer='lbfgs'" in repr(ContrastMaximization(Affine4((8, 8))))
 
 
+def _fit_windows(device="cpu"):
+    """Three windows of translating blobs (clusters in crops and on the whole sensor, from 30% off), of
+    different sizes, with their pools padded to three clusters (the third window's third cluster has no
+    events); as a padded batch."""
+    windows = [
+        _corner_and_sensor(seed=0),
+        _corner_and_sensor(seed=1, corner=False),
+        _corner_and_sensor(seed=2),
+    ]
+    model = windows[0][0]
+    events = [window[3].to(device=device, dtype=torch.float32) for window in windows]
+    longest = max(len(window) for window in events)
+    weights = torch.zeros(3, 3, longest, device=device)
+    start = torch.zeros(3, 3, 2, device=device)
+    for row, (*_, own, start_own) in enumerate(windows):
+        weights[row, : own.shape[0], : own.shape[1]] = own
+        start[row, : len(start_own)] = start_own
+    start[1, 2] = torch.tensor([5.0, 7.0])  # no events: kept
+    return model, events, batch_windows(events), start, weights
+
+
+class TestBatchedFits:
+    @pytest.mark.parametrize("optimizer", ["lbfgs", "adam"])
+    def test_batch_equals_windows_alone(self, device, optimizer):
+        # Every window's fits run in lockstep with their own optimiser state: each lands where it lands
+        # alone (bit for bit on the CPU), whatever the other windows and the padding.
+        model, events, batch, start, weights = _fit_windows(device)
+        cmax = ContrastMaximization(model, max_iter=8, optimizer=optimizer)
+        fitted = cmax(batch, start, weights)
+        assert fitted.shape == (3, 3, 2) and fitted.device.type == device.type
+        for row, own in enumerate(events):
+            count = 2 if row == 1 else 3
+            alone = cmax(own, start[row, :count], weights[row, :count, : len(own)])
+            torch.testing.assert_close(fitted[row, :count], alone, atol=1e-3, rtol=0)
+            if device.type == "cpu":
+                assert torch.equal(fitted[row, :count], alone)
+        assert torch.equal(fitted[1, 2], start[1, 2])
+        # Every cluster moved from its start towards its blob's motion.
+        assert (fitted[0] - start[0]).abs().amax() > 10
+
+    def test_batch_without_weights(self, device):
+        model, events, batch, start, _ = _fit_windows(device)
+        cmax = ContrastMaximization(model, max_iter=4)
+        fitted = cmax(batch, start[:, :2])
+        assert torch.all((fitted - start[:, :2]).abs().amax(dim=2) > 1)  # every cluster is fitted
+        for row, own in enumerate(events):
+            alone = cmax(own, start[row, :2])
+            torch.testing.assert_close(fitted[row], alone, atol=1e-3, rtol=0)
+            if device.type == "cpu":
+                assert torch.equal(fitted[row], alone)
+
+    def test_window_without_time_span_keeps_its_start(self):
+        model, events, _, start, weights = _fit_windows()
+        still = EventBatch(events[2].xy, torch.zeros_like(events[2].t), events[2].p)
+        batch = batch_windows([events[0], still])
+        fitted = ContrastMaximization(model, max_iter=3)(batch, start[[0, 2]], weights[[0, 2]])
+        assert torch.equal(fitted[1], start[2]) and not torch.equal(fitted[0], start[0])
+
+    def test_exception(self):
+        model, _, batch, start, weights = _fit_windows()
+        cmax = ContrastMaximization(model)
+        with pytest.raises(ShapeError, match=r"init_params must be \(B, K, 2\) with B = 3 windows"):
+            cmax(batch, start[0])
+        with pytest.raises(ShapeError, match=r"weights must be \(B, K, N_max\)"):
+            cmax(batch, start, weights[..., :10])
+
+
+class TestLockstep:
+    def test_each_problem_as_alone(self):
+        # Two quadratics minimised by L-BFGS in lockstep, one evaluation for both per step, land where
+        # each lands alone.
+        targets = [
+            torch.tensor([[3.0, -1.0]], dtype=torch.float64),
+            torch.tensor([[0.5, 2.0]], dtype=torch.float64),
+        ]
+        scales = [1.0, 40.0]
+
+        def optimise(parameter, closure):
+            torch.optim.LBFGS([parameter], max_iter=5, line_search_fn="strong_wolfe").step(closure)
+
+        def evaluate(problems, values):
+            replies = []
+            for problem, value in zip(problems, values, strict=True):
+                value = value.clone().requires_grad_()
+                loss = scales[problem] * ((value - targets[problem]) ** 2).sum() + (value**4).sum()
+                loss.backward()
+                replies.append((loss.detach(), value.grad))
+            return replies
+
+        starts = [torch.zeros(1, 2, dtype=torch.float64), torch.ones(1, 2, dtype=torch.float64)]
+        together = _lockstep(starts, optimise, evaluate)
+        for problem, start in enumerate(starts):
+            alone = _lockstep([start], optimise, lambda _, values, p=problem: evaluate([p], values))[0]
+            assert torch.equal(together[problem], alone)
+
+    def test_errors_reach_the_caller(self):
+        def optimise(parameter, closure):
+            torch.optim.LBFGS([parameter], max_iter=3).step(closure)
+
+        def evaluate(problems, values):
+            raise ValueError("no objective")
+
+        with pytest.raises(ValueError, match="no objective"):
+            _lockstep([torch.zeros(2), torch.ones(2)], optimise, evaluate)
+
+        def failing(parameter, closure):
+            raise RuntimeError("optimiser failed")
+
+        with pytest.raises(RuntimeError, match="optimiser failed"):
+            _lockstep([torch.zeros(2)], failing, evaluate)
+
+
 def _corner_and_sensor(seed=0, corner=True):
     """Translating edges: a blob in the top-left corner, one spanning the sensor and (``corner``) a
     smaller blob in the bottom-right corner, shuffled together; with one-hot weights and 30% off starts."""
@@ -353,26 +505,40 @@ class TestCrops:
         model, *_, events, weights, start = _corner_and_sensor()
         own, padded = gather_members(events, weights)
         warp = _LinearWarp.build(model, own, with_area=False)
-        groups = _crops(warp, padded, start, SIZE)
+        fits, origin = _crops(warp, padded, start, SIZE, torch.zeros(3, dtype=torch.long))
         height, width = SIZE
-        assert [rows.tolist() for rows, _, _ in groups] == [[0, 2], [1]]
-        (_, small, small_size), (_, whole, whole_size) = groups
+        assert [rows.tolist() for rows, _ in fits] == [[0, 2], [1]]
+        (_, small_size), (_, whole_size) = fits
         assert whole_size == SIZE and small_size[0] * small_size[1] <= 0.25 * height * width
-        torch.testing.assert_close(whole.xy, own.xy[[1]])
-        for row, k in enumerate([0, 2]):
+        assert torch.all(origin[1] == 0)
+        shifted = warp._replace(xy=warp.xy - origin[:, None])
+        for k in (0, 2):
             member = padded[k] != 0
-            shift = own.xy[k, member] - small.xy[row, member]
             # Each cluster is moved by a whole number of pixels, into the crop, at the start and warped.
-            assert (
-                torch.all(shift == shift[:1]) and torch.all(shift == shift.round()) and torch.all(shift >= 0)
-            )
-            for xy in (small.xy[row, member], small.warped(start[[0, 2]])[row, member]):
+            assert torch.all(origin[k] == origin[k].round()) and torch.all(origin[k] >= 0)
+            for xy in (shifted.xy[k, member], shifted.warped(start)[k, member]):
                 assert xy.min() >= 0
                 assert xy[:, 0].max() <= small_size[1] - 1 and xy[:, 1].max() <= small_size[0] - 1
         # The bottom-right blob's crop is moved back inside the sensor: it ends at the sensor's edge.
-        far = own.xy[2, padded[2] != 0]
-        offset = (far - small.xy[1, padded[2] != 0])[0]
-        assert offset[0] + small_size[1] - 1 == width - 1 and offset[1] + small_size[0] - 1 == height - 1
+        assert (
+            origin[2, 0] + small_size[1] - 1 == width - 1 and origin[2, 1] + small_size[0] - 1 == height - 1
+        )
+
+    def test_crops_per_window(self):
+        # The same clusters in two windows of a batch: each window gets its own fits, crops first.
+        model, *_, events, weights, start = _corner_and_sensor()
+        own, padded = gather_members(events, weights)
+        warp = _LinearWarp.build(model, own, with_area=False)
+        twice = warp.rows(torch.tensor([0, 1, 2, 0, 1, 2]))
+        window = torch.tensor([0, 0, 0, 1, 1, 1])
+        fits, origin = _crops(twice, padded.repeat(2, 1), start.repeat(2, 1), SIZE, window)
+        assert [rows.tolist() for rows, _ in fits] == [[0, 2], [1], [3, 5], [4]]
+        assert fits[0][1] == fits[2][1] and fits[1][1] == fits[3][1] == SIZE
+        torch.testing.assert_close(origin[:3], origin[3:])
+        # Not cropped: one fit per window, on the whole sensor.
+        fits, origin = _crops(twice, padded.repeat(2, 1), start.repeat(2, 1), SIZE, window, cropped=False)
+        assert [(rows.tolist(), size) for rows, size in fits] == [([0, 1, 2], SIZE), ([3, 4, 5], SIZE)]
+        assert torch.all(origin == 0)
 
     def test_small_cluster_fitted_in_a_crop(self):
         # A blob in one corner is fitted in a crop, the cluster spanning the sensor on the whole sensor:

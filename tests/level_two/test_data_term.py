@@ -2,8 +2,8 @@ import pytest
 import torch
 
 from evseg_torch.errors import ConfigError, ShapeError
-from evseg_torch.events import EventBatch
-from evseg_torch.level_two.data_term import NORMALIZATIONS, DataCost, data_cost, sample_bilinear
+from evseg_torch.events import EventBatch, batch_windows
+from evseg_torch.level_two.data_term import NORMALIZATIONS, DataCost, _margins, data_cost, sample_bilinear
 from evseg_torch.level_two.iwe import splat_events, warp_events
 from evseg_torch.motion import Affine4, Translation
 
@@ -44,6 +44,92 @@ class TestSampleBilinear:
         values, inside = sample_bilinear(torch.ones(1, 4, 4), torch.tensor([[[-0.1, 1], [1, 3.01], [3, 3]]]))
         assert inside.tolist() == [[False, False, True]]
         assert values.tolist() == [[0.0, 0.0, 1.0]]
+
+
+def _windows(dtype=torch.float32):
+    """Three windows of different sizes, and pools of different sizes whose models carry events 5, 0 and 4
+    pixels beyond the sensor."""
+    windows = [
+        _edge_events(count=400, seed=0, dtype=dtype),
+        _edge_events(count=250, flow=(-200.0, 50.0), seed=1, dtype=dtype),
+        _edge_events(count=320, flow=(100.0, 150.0), seed=2, dtype=dtype),
+    ]
+    pools = [
+        torch.tensor([[300.0, -100.0], [0.0, 0.0], [900.0, 900.0]], dtype=dtype),
+        torch.tensor([[-200.0, 50.0], [100.0, 0.0]], dtype=dtype),
+        torch.tensor([[100.0, 150.0], [900.0, 0.0], [0.0, 0.0]], dtype=dtype),
+    ]
+    return windows, pools
+
+
+class TestSampleBilinearExtent:
+    def test_reads_as_the_smaller_image(self):
+        # An image in the top-left corner of a larger canvas reads as the image alone: the same values,
+        # the same outside positions (the last row and column included).
+        image = torch.rand(1, 4, 5)
+        canvas = torch.rand(1, 7, 9)
+        canvas[0, :4, :5] = image[0]
+        xy = torch.tensor([[[0.0, 0.0], [4.0, 3.0], [3.5, 2.25], [4.01, 1.0], [1.0, 3.5], [6.0, 6.0]]])
+        alone = sample_bilinear(image, xy)
+        within = sample_bilinear(canvas, xy, extent=torch.tensor([[[4, 5]]]))
+        assert torch.equal(within[1], alone[1]) and torch.equal(within[0], alone[0])
+        assert alone[1].tolist() == [[True, True, True, False, False, False]]
+
+
+class TestDataCostBatch:
+    @pytest.mark.parametrize("normalization", NORMALIZATIONS)
+    @pytest.mark.parametrize(("polarity", "margin"), [(False, 0), (True, None), (False, 3)])
+    def test_batch_equals_windows_alone(self, device, normalization, polarity, margin):
+        # The padded batch's costs of each window equal its costs alone (bit for bit on the CPU), also
+        # where the windows' own margins differ (margin=None: 5, 0 and 4 pixels, see the next test);
+        # padding events and models cost 255.
+        windows, pools = _windows()
+        model = Translation((32, 40))
+        kwargs = {"normalization": normalization, "polarity": polarity, "margin": margin}
+        params = torch.nn.utils.rnn.pad_sequence(pools, batch_first=True)
+        valid = torch.tensor([[True, True, True], [True, True, False], [True, True, True]])
+        batch = batch_windows(windows).to(device)
+        cost = data_cost(model, batch, params.to(device), valid=valid.to(device), **kwargs)
+        assert cost.shape == (3, 400, 3) and cost.device.type == device.type
+        for row, (window, pool) in enumerate(zip(windows, pools, strict=True)):
+            alone = data_cost(model, window.to(device), pool.to(device), **kwargs)
+            own = cost[row, : len(window), : len(pool)]
+            torch.testing.assert_close(own, alone, atol=1e-3, rtol=0)
+            if device.type == "cpu":
+                assert torch.equal(own, alone)
+            assert torch.all(cost[row, len(window) :] == 255) and torch.all(cost[row, :, len(pool) :] == 255)
+
+    def test_margins_differ(self):
+        # The windows' own margins (margin=None) differ, so the batch above holds each window's IWEs in
+        # its extent of a canvas of the widest margin.
+        windows, pools = _windows()
+        model = Translation((32, 40))
+        margins = [
+            _margins(
+                warp_events(model, w.xy, w.t, p)[None],
+                torch.ones(1, len(p), len(w), dtype=torch.bool),
+                32,
+                40,
+            )
+            for w, p in zip(windows, pools, strict=True)
+        ]
+        assert len({margin for (margin,) in margins}) == 3, margins
+
+    def test_module_and_exceptions(self):
+        windows, pools = _windows()
+        model = Translation((32, 40))
+        batch = batch_windows(windows[:2])
+        params = torch.nn.utils.rnn.pad_sequence(pools[:2], batch_first=True)
+        torch.testing.assert_close(
+            DataCost(model, normalization="relative")(batch, params),
+            data_cost(model, batch, params, normalization="relative"),
+        )
+        with pytest.raises(ShapeError, match=r"\(B, K, 2\) with K >= 1 for the translation model and B = 2"):
+            data_cost(model, batch, params[0])
+        with pytest.raises(ShapeError, match=r"valid must be \(B, K\)"):
+            data_cost(model, batch, params, valid=torch.ones(2, 2, dtype=torch.bool))
+        with pytest.raises(ShapeError, match="valid"):
+            data_cost(model, windows[0], pools[0], valid=torch.ones(1, 3, dtype=torch.bool))
 
 
 class TestDataCost:

@@ -6,6 +6,7 @@ from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.iwe import (
     ImageOfWarpedEvents,
+    extent_mask,
     gaussian_blur,
     splat_events,
     warp_events,
@@ -138,6 +139,38 @@ class TestSplatEvents:
             module(xy, weights, polarity), splat_events(xy, (8, 8), weights, sigma=0.7, polarity=polarity)
         )
         assert "sigma=0.7" in repr(module)
+
+
+class TestExtent:
+    @pytest.mark.parametrize("polarity", [False, True])
+    def test_each_image_equals_its_size_alone(self, device, polarity):
+        # Images of three sizes in one canvas: inside its extent each is the image of its size, bit for
+        # bit on the CPU (zeros beyond the extent blur as the border's zero padding does).
+        sizes = [(8, 8), (6, 7), (5, 9)]
+        xy = torch.stack([_inside(40, size=(8, 9), seed=seed) for seed in range(3)]).to(device)
+        weights = torch.rand(3, 40, dtype=torch.float64, generator=torch.Generator().manual_seed(1)).to(
+            device
+        )
+        sign = torch.randn(3, 40, dtype=torch.float64, generator=torch.Generator().manual_seed(2)).to(device)
+        extent = torch.tensor(sizes, device=device)
+        canvas = splat_events(xy, (8, 9), weights, polarity=sign if polarity else None, extent=extent)
+        for k, (height, width) in enumerate(sizes):
+            alone = splat_events(xy[k], (height, width), weights[k], polarity=sign[k] if polarity else None)
+            torch.testing.assert_close(canvas[k][..., :height, :width], alone, atol=1e-12, rtol=0)
+            if device.type == "cpu":
+                assert torch.equal(canvas[k][..., :height, :width], alone)
+
+    def test_gradcheck(self):
+        xy = _inside(12, size=(6, 7)).requires_grad_()
+        extent = torch.tensor([[4, 5], [6, 7]])
+        assert torch.autograd.gradcheck(
+            lambda p: splat_events(p.expand(2, -1, -1), (6, 7), extent=extent), (xy,), fast_mode=True
+        )
+
+    def test_mask(self):
+        mask = extent_mask(torch.tensor([[2, 3], [1, 1]]), (3, 4))
+        assert mask.shape == (2, 3, 4)
+        assert mask.sum((1, 2)).tolist() == [6, 1] and mask[0, :2, :3].all() and mask[1, 0, 0]
 
 
 class TestWarpEvents:
