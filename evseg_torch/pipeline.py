@@ -18,7 +18,7 @@ from torch import Tensor, nn
 
 from evseg_torch.config import SegmenterConfig, load_config, replace_config
 from evseg_torch.errors import ConfigError, EventFormatError, ModelError
-from evseg_torch.events import EventBatch, as_events, batch_windows, check_sensor_size, iter_windows, to_torch
+from evseg_torch.events import EventBatch, as_events, check_sensor_size, iter_windows, to_torch
 from evseg_torch.level_one.features import Correspondences, extract_correspondences
 from evseg_torch.level_one.progressive_x import ProgressiveXResult, progressive_x
 from evseg_torch.level_two.iwe import warp_events
@@ -247,11 +247,7 @@ class CascadedSegmenter(nn.Module):
             for *_, fitted, _ in prepared
         ]
         with torch.no_grad():
-            twos = (
-                self.level_two(batch_windows(batches), pools)
-                if len(batches) > 1
-                else [self.level_two(batches[0], pools[0])]
-            )
+            twos = self.level_two(batches, pools)
         level_two_ms = 1e3 * (time.perf_counter() - starts[-1]) / len(windows)
         return [
             self._result(item, batch, two, level_one_ms, level_two_ms, tensors)

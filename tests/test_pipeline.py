@@ -210,7 +210,16 @@ def test_segment_batch_equals_windows_one_by_one(scene):
         segmenter.segment_batch(windows, initial_models=[None])
 
 
-def test_stream_in_batches_places_every_window():
+@pytest.fixture
+def one_thread():
+    """Batched and solo level two agree bit for bit only when torch splits no reduction across threads."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_stream_in_batches_places_every_window(one_thread):
     scene = make_scene((180, 240), 0.12, n_objects=1, rng=4)
     segmenter = CascadedSegmenter((180, 240))
     one = list(segmenter.stream(scene.events, window_ms=30))
@@ -224,6 +233,6 @@ def test_stream_in_batches_places_every_window():
             [labelling_accuracy(r.labels, scene.labels[r.offset : r.offset + len(r.labels)]) for r in results]
         )
 
-    assert accuracy(batched) > accuracy(one) - 0.05 and accuracy(batched) > 0.8, (accuracy(batched), accuracy(one))
+    assert accuracy(batched) > accuracy(one) - 0.05 and accuracy(batched) > 0.8
     with pytest.raises(ConfigError, match="batch_size"):
         next(segmenter.stream(scene.events, batch_size=0))
