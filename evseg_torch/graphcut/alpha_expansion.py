@@ -27,6 +27,14 @@ handled by comparing energies, which is *exact* for the move: if the cut's best 
 node to α it is also the best labelling among those that use α, and the other candidate, moving
 nothing, is the current labelling. So every move is the optimal expansion move.
 
+A label that no optimal move can drop gets no gadget (:func:`_retained_labels`): dropping ``l`` means
+moving all of its nodes to α, which costs at least their data-cost rise minus the weight of ``l``'s
+boundary; when that exceeds ``h_l``, ``h_l`` is a constant of the move. This leaves the cut's minima
+unchanged; in level two it removes 92% of the gadgets and 12–16% of the labelling time (median per
+window on the probe, default and hard synthetic windows). Fixing single nodes whose data cost for α
+exceeds their own by more than their smoothness weights, the usual pruning, would fix under 2% of the
+movable sites there: the Potts terms dominate.
+
 A move is accepted only if :func:`labeling_energy` strictly decreases, which also guards against
 floating-point noise in the cut. A label is skipped when no other label's move has changed the labelling
 since its own last attempt, because the optimal α-expansion of an α-expansion result is that result
@@ -378,6 +386,43 @@ def _add_label_costs(graph, label_cost, member_label, members, n_groups) -> None
     )
 
 
+def _retained_labels(
+    problem: _Problem,
+    labels: np.ndarray,
+    alpha: int,
+    keep_data: np.ndarray,
+    tail_label: np.ndarray,
+    head_label: np.ndarray,
+    boundary_weight: np.ndarray,
+) -> np.ndarray:
+    """The labels that every optimal α-move keeps in use; their label costs are constants of the move.
+
+    A move drops a label ``l != α`` only by moving all of ``l``'s nodes to α. Against the same move with
+    those nodes kept, that raises the data cost by the sum of ``U[:, α] - U[:, l]`` over them, lowers the
+    Potts energy by at most the weight of ``l``'s boundary (edges inside ``l`` cost nothing either way,
+    edges leaving it at most their weight) and saves ``h_l``. When the rise exceeds the other two, no
+    optimal move drops ``l``.
+
+    Args:
+        problem: the energy.
+        labels: current labels :math:`(N,)`.
+        alpha: the expanding label.
+        keep_data: each node's data cost for its current label, :math:`(N,)`.
+        tail_label: labels of the layout's edge tails, :math:`(E',)`.
+        head_label: labels of the layout's edge heads, :math:`(E',)`.
+        boundary_weight: the layout's edge weights where the ends' labels differ, else 0, :math:`(E',)`.
+
+    Returns:
+        bool :math:`(L,)`.
+    """
+    n_labels = problem.n_labels
+    rise = np.bincount(labels, weights=problem.unary[:, alpha] - keep_data, minlength=n_labels)
+    boundary = np.bincount(tail_label, weights=boundary_weight, minlength=n_labels) + np.bincount(
+        head_label, weights=boundary_weight, minlength=n_labels
+    )
+    return rise - boundary > problem.label_cost
+
+
 def _expand(problem: _Problem, labels: np.ndarray, alpha: int) -> np.ndarray:
     """Best α-expansion of ``labels`` ignoring α's label cost, by one minimum cut (new array)."""
     layout = problem.layout
@@ -394,13 +439,15 @@ def _expand(problem: _Problem, labels: np.ndarray, alpha: int) -> np.ndarray:
     # Cost of keeping the current label (paid on the source side): the data cost, Potts edges to
     # α-nodes and the "w on head keeping" part of pairs whose ends differ. An edge whose head is α
     # charges its tail; edges between two α-nodes have equal ends and charge nothing.
-    keep_cost = np.take_along_axis(problem.unary, labels[:, None], axis=1)[:, 0]
-    keep_cost += np.bincount(
-        np.where(head_movable, layout.head, layout.tail), weights=layout.weight * differ, minlength=n_nodes
+    keep_data = np.take_along_axis(problem.unary, labels[:, None], axis=1)[:, 0]
+    boundary_weight = layout.weight * differ
+    keep_cost = keep_data + np.bincount(
+        np.where(head_movable, layout.head, layout.tail), weights=boundary_weight, minlength=n_nodes
     )
 
     counts = np.bincount(labels, minlength=problem.n_labels)
-    charged = (counts > 0) & (problem.label_cost > 0)
+    retained = _retained_labels(problem, labels, alpha, keep_data, tail_label, head_label, boundary_weight)
+    charged = (counts > 0) & (problem.label_cost > 0) & ~retained
     charged[alpha] = False
     members = np.flatnonzero(charged[labels[layout.graph_order]])
     n_groups = -(-counts // _GROUP_SIZE) * charged

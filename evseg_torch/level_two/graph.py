@@ -1,7 +1,7 @@
-"""EMSGC's spatio-temporal event graph: Delaunay-adjacent pixels, nearest events in time.
+"""Level two's graphs: EMSGC's spatio-temporal event graph, and its merge into sites.
 
-The sites of level two's graph cut are the events of one window. Following EMSGC
-(``createEventGeneralGraph_newInit``), neighbours are found in two steps:
+The sites of EMSGC's graph cut are the events of one window. Following EMSGC
+(``createEventGeneralGraph_newInit``), neighbours are found in two steps (:func:`event_graph`):
 
 1. **Space.** The *active pixels* (pixels with at least one event) are triangulated (2-D Delaunay,
    :class:`cv2.Subdiv2D`); two pixels are adjacent when a triangle edge joins them. There is
@@ -131,9 +131,11 @@ def event_graph(
     xy, t = _coordinates_and_times(events, t, sensor_size)
     if xy.shape[0] < 2:
         return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.float64)
-    found = _lookups(xy, t)
+    pixel_xy, pixel = _pixels(xy)
+    pixel_pairs, multiplicity = pixel_adjacency(pixel_xy)
+    found = _lookups(pixel, pixel_pairs, t)
     tail, head = found.tail[found.first], found.head[found.first]
-    weights = [found.multiplicity[found.pair[found.first]].astype(np.float64)]
+    weights = [multiplicity[found.pair[found.first]].astype(np.float64)]
     if temporal_edges:
         tail, head = np.concatenate([tail, found.earlier]), np.concatenate([head, found.later])
         weights.append(np.ones(len(found.earlier)))
@@ -161,10 +163,12 @@ def site_graph(
     per site gives the same data energy, so a graph cut on the sites minimises the event graph's
     energy over such labellings (level two's deviation from EMSGC, see
     :mod:`~evseg_torch.level_two.segmenter`). The event edges are counted per site pair with one
-    ``bincount``, never listed or sorted.
+    ``bincount``, never listed or sorted, and sites are numbered through a dense (pixel, slice) table.
 
     Args:
-        events, t, sensor_size, temporal_edges: as in :func:`event_graph`.
+        events, t, sensor_size, temporal_edges: as in :func:`event_graph`; a temporal edge joins the
+            sites of one pixel in consecutive slices that hold events (weight 1: the pixel's events,
+            in time order, cross between them once).
         time_slices: number of slices of the window's time span, at least 1.
 
     Returns:
@@ -177,8 +181,8 @@ def site_graph(
         ConfigError: if ``time_slices`` is not a positive integer.
 
     Examples:
-        >>> xy = np.array([[0, 0], [1, 0], [0, 0], [1, 0]])
-        >>> sites, edges, weights = site_graph(xy, np.array([0.0, 1.0, 2.0, 3.0]))
+        >>> xy, t = np.array([[0, 0], [1, 0], [0, 0], [1, 0]]), np.array([0.0, 1.0, 2.0, 3.0])
+        >>> sites, edges, weights = site_graph(xy, t)
         >>> sites.tolist(), edges.tolist(), weights.tolist()
         ([0, 1, 0, 1], [[0, 1]], [3.0])
     """
@@ -189,35 +193,40 @@ def site_graph(
     count = xy.shape[0]
     if count < 2:
         return np.zeros(count, dtype=np.int64), np.zeros((0, 2), dtype=np.int64), np.zeros(0)
-    found = _lookups(xy, t)
     slot = np.zeros(count, dtype=np.int64)
     span = float(t.max() - t.min())
     if span > 0 and slices > 1:
         slot = np.minimum(((t - t.min()) * (slices / span)).astype(np.int64), slices - 1)
-    site_keys, sites = np.unique(found.pixel * slices + slot, return_inverse=True)
+    pixel_xy, pixel = _pixels(xy)
+    pixel_pairs, multiplicity = pixel_adjacency(pixel_xy)
+    cell = pixel * slices + slot
+    per_cell = np.bincount(cell, minlength=len(pixel_xy) * slices)
+    site_of = np.cumsum(per_cell > 0) - 1
+    sites = site_of[cell]
 
-    # Spatial edges, counted per (adjacent pixel pair, slice at its first pixel, slice at its second)
-    # with one bincount: key = pair * slices^2 + slot_low * slices + slot_high.
-    tail_is_low = found.pixel[found.tail] == found.pixel_pairs[found.pair, 0]
-    slot_low = np.where(tail_is_low, slot[found.tail], slot[found.head])
-    slot_high = np.where(tail_is_low, slot[found.head], slot[found.tail])
+    # Event pairs counted per (adjacent pixel pair, slice at its first pixel, slice at its second) with
+    # one bincount: key = pair * slices^2 + slot_low * slices + slot_high; in one slice every slot is 0.
+    found = _lookups(pixel, pixel_pairs, t)
+    slot_low = slot_high = 0
+    if slices > 1:
+        tail_is_low = pixel[found.tail] == pixel_pairs[found.pair, 0]
+        slot_low = np.where(tail_is_low, slot[found.tail], slot[found.head])
+        slot_high = np.where(tail_is_low, slot[found.head], slot[found.tail])
     counts = np.bincount(
         (found.pair * slices + slot_low) * slices + slot_high,
         weights=found.first,
-        minlength=len(found.multiplicity) * slices**2,
+        minlength=len(pixel_pairs) * slices**2,
     )
     key = np.flatnonzero(counts)
     pair, slot_low, slot_high = key // slices**2, key // slices % slices, key % slices
-    low = np.searchsorted(site_keys, found.pixel_pairs[pair, 0] * slices + slot_low)
-    high = np.searchsorted(site_keys, found.pixel_pairs[pair, 1] * slices + slot_high)
+    low = site_of[pixel_pairs[pair, 0] * slices + slot_low]
+    high = site_of[pixel_pairs[pair, 1] * slices + slot_high]
     edges = [np.column_stack([low, high])]
-    weights = [counts[key] * found.multiplicity[pair]]
+    weights = [counts[key] * multiplicity[pair]]
     if temporal_edges:
-        low, high = sites[found.earlier], sites[found.later]
-        between = low != high  # consecutive events of one pixel in different slices
-        pair_key, multiplicity = np.unique(low[between] * len(site_keys) + high[between], return_counts=True)
-        edges.append(np.column_stack([pair_key // len(site_keys), pair_key % len(site_keys)]))
-        weights.append(multiplicity.astype(np.float64))
+        later = np.flatnonzero(np.diff(np.flatnonzero(per_cell) // slices) == 0) + 1  # same pixel's next site
+        edges.append(np.column_stack([later - 1, later]))
+        weights.append(np.ones(len(later)))
     return sites, np.concatenate(edges), np.concatenate(weights).astype(np.float64)
 
 
@@ -225,14 +234,11 @@ class _Lookups(NamedTuple):
     """The nearest-in-time lookups of :func:`event_graph`, before they become edges.
 
     Every spatial candidate is an event ``tail``, an event ``head`` at a pixel adjacent to the tail's
-    (the latest before or the earliest after the tail), and the index ``pair`` of the two pixels in
-    ``pixel_pairs``. A pair found from both of its events appears twice; ``first`` is False on one copy.
+    (the latest before or the earliest after the tail), and the index ``pair`` of the two pixels in the
+    adjacency. A pair found from both of its events appears twice; ``first`` is False on one copy.
     ``earlier``, ``later`` are consecutive events at the same pixel.
     """
 
-    pixel: np.ndarray  # (N,) index of each event's pixel among the active pixels (row-major order)
-    pixel_pairs: np.ndarray  # (A, 2) Delaunay-adjacent pixel indices, low < high
-    multiplicity: np.ndarray  # (A,)
     tail: np.ndarray
     head: np.ndarray
     pair: np.ndarray
@@ -241,22 +247,40 @@ class _Lookups(NamedTuple):
     later: np.ndarray
 
 
-def _lookups(xy: np.ndarray, t: np.ndarray) -> _Lookups:
-    count = xy.shape[0]
+def _pixels(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct pixels of events :math:`(N, 2)` in row-major order, :math:`(P, 2)`, and each event's
+    index among them, :math:`(N,)`; through a dense image of the events' bounding box, without sorting."""
     width = int(xy[:, 0].max()) + 1
-    pixel_keys, pixel = np.unique(xy[:, 1] * width + xy[:, 0], return_inverse=True)
-    n_pixels = pixel_keys.shape[0]
-    pixel_pairs, multiplicity = pixel_adjacency(np.column_stack([pixel_keys % width, pixel_keys // width]))
+    key = xy[:, 1] * width + xy[:, 0]
+    active = np.zeros(int(key.max()) + 1, dtype=bool)
+    active[key] = True
+    pixel_keys = np.flatnonzero(active)
+    return np.column_stack([pixel_keys % width, pixel_keys // width]), (np.cumsum(active) - 1)[key]
+
+
+def _lookups(pixel: np.ndarray, pixel_pairs: np.ndarray, t: np.ndarray) -> _Lookups:
+    """The lookups of :func:`event_graph` over any pixel adjacency.
+
+    Args:
+        pixel: each event's pixel index :math:`(N,)` in ``[0, P)``, every index used.
+        pixel_pairs: adjacent pixel indices :math:`(A, 2)`, low < high.
+        t: the events' times :math:`(N,)`.
+    """
+    count = pixel.shape[0]
+    n_pixels = int(pixel.max()) + 1
 
     # Events ordered by (pixel, time, index) under one int64 key; ties in time are broken by event
     # order, so no event shares its key and one searchsorted finds both the latest event before and the
-    # earliest after a query.
+    # earliest after a query. Pixel p's events are sorted_key[first[p]:first[p + 1]].
     rank = np.empty(count, dtype=np.int64)
     rank[np.argsort(t, kind="stable")] = np.arange(count, dtype=np.int64)
     key = pixel * count + rank
     order = np.argsort(key)
     sorted_key = key[order]
-    same_pixel = sorted_key[1:] // count == sorted_key[:-1] // count
+    sorted_pixel = pixel[order]
+    first = np.zeros(n_pixels + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pixel, minlength=n_pixels), out=first[1:])
+    same_pixel = sorted_pixel[1:] == sorted_pixel[:-1]
     # The previous event at the same pixel, or -1.
     previous = np.full(count, -1, dtype=np.int64)
     previous[order[1:][same_pixel]] = order[:-1][same_pixel]
@@ -270,17 +294,16 @@ def _lookups(xy: np.ndarray, t: np.ndarray) -> _Lookups:
     np.cumsum(np.bincount(source, minlength=n_pixels), out=start[1:])
     # Events expand in (pixel, time) order, which keeps the searchsorted queries below close together
     # in memory (about twice as fast as in event order).
-    sorted_pixel = pixel[order]
     degree = start[sorted_pixel + 1] - start[sorted_pixel]
     event = np.repeat(order, degree)
     slot = np.arange(event.shape[0], dtype=np.int64) + np.repeat(
         start[sorted_pixel] - (np.cumsum(degree) - degree), degree
     )
     neighbour_pixel = target[slot]
-    after = np.searchsorted(sorted_key, neighbour_pixel * count + rank[event])
+    after = np.searchsorted(sorted_key, neighbour_pixel * count + np.repeat(sorted_key % count, degree))
     before = after - 1
-    ok_before = (before >= 0) & (sorted_key[np.maximum(before, 0)] // count == neighbour_pixel)
-    ok_after = (after < count) & (sorted_key[np.minimum(after, count - 1)] // count == neighbour_pixel)
+    ok_before = before >= first[neighbour_pixel]
+    ok_after = after < first[neighbour_pixel + 1]
     found_before = order[before[ok_before]]
     tail_before = event[ok_before]
     # The tail's "latest before" f is also found from f as its "earliest after" exactly when no event of
@@ -288,9 +311,6 @@ def _lookups(xy: np.ndarray, t: np.ndarray) -> _Lookups:
     earlier_own = previous[tail_before]
     mutual = (earlier_own < 0) | (rank[np.maximum(earlier_own, 0)] < rank[found_before])
     return _Lookups(
-        pixel,
-        pixel_pairs,
-        multiplicity,
         np.concatenate([tail_before, event[ok_after]]),
         np.concatenate([found_before, order[after[ok_after]]]),
         np.concatenate([target_pair[slot[ok_before]], target_pair[slot[ok_after]]]),

@@ -6,7 +6,9 @@ import pytest
 
 from evseg_torch.errors import EvsegError, ShapeError
 from evseg_torch.graphcut import ExpansionResult, GraphCutError, alpha_expansion, labeling_energy
-from evseg_torch.graphcut.alpha_expansion import _expand, _prepare, potts_graph
+from evseg_torch.graphcut.alpha_expansion import _expand, _prepare, _retained_labels, potts_graph
+from evseg_torch.pipeline import CascadedSegmenter
+from evseg_torch.synthetic import make_scene
 
 # The package re-exports the function under the module's name, so fetch the module itself.
 alpha_expansion_module = importlib.import_module("evseg_torch.graphcut.alpha_expansion")
@@ -114,6 +116,96 @@ class TestExpansionMove:
             assert (candidate[candidate != labels] == alpha).all()
             kept = min(_all_energies(candidate[None], *args)[0], _all_energies(labels[None], *args)[0])
             assert kept == pytest.approx(best, abs=1e-9)
+
+
+def _keep_every_gadget(problem, *args):
+    """A stand-in for ``_retained_labels`` that retains no label: every label cost keeps its gadget."""
+    return np.zeros(problem.n_labels, dtype=bool)
+
+
+class TestRetainedLabels:
+    """Labels that every optimal move keeps lose their label-cost gadget; that must change no result."""
+
+    @staticmethod
+    def _retained(problem, labels, alpha):
+        layout = problem.layout
+        tail_label, head_label = labels[layout.tail], labels[layout.head]
+        keep_data = problem.unary[np.arange(len(labels)), labels]
+        boundary_weight = layout.weight * (tail_label != head_label)
+        return _retained_labels(problem, labels, alpha, keep_data, tail_label, head_label, boundary_weight)
+
+    @pytest.mark.parametrize("seed", range(20))
+    def test_no_optimal_move_drops_a_retained_label(self, seed):
+        rng = np.random.default_rng(seed)
+        n_nodes, n_labels = 8, 3
+        unary, edges, weights = _random_problem(rng, n_nodes, n_labels, 14)
+        labels = rng.integers(0, n_labels, size=n_nodes)
+        unary[np.arange(n_nodes), labels] -= rng.uniform(0.0, 3.0)  # labels supported by their data
+        label_cost = rng.uniform(0.0, 4.0, size=n_labels)
+        problem = _prepare(unary, edges, weights, 0.8, label_cost, None, 0.0)
+        for alpha in range(n_labels):
+            movable = np.flatnonzero(labels != alpha)
+            masks = np.array(list(itertools.product([False, True], repeat=len(movable))), dtype=bool)
+            moves = np.tile(labels, (len(masks), 1))
+            moves[:, movable] = np.where(masks, alpha, labels[movable])
+            # The cut's energy leaves out α's own label cost.
+            without_alpha = np.where(np.arange(n_labels) == alpha, 0.0, label_cost)
+            energies = _all_energies(moves, unary, edges, weights, 0.8, without_alpha, None, 0.0)
+            best = moves[np.isclose(energies, energies.min(), rtol=0, atol=1e-9)]
+            for label in np.flatnonzero(self._retained(problem, labels, alpha)):
+                assert (best == label).any(axis=1).all()
+
+    @pytest.mark.parametrize("seed", range(10))
+    def test_same_result_as_with_every_gadget(self, seed, monkeypatch):
+        rng = np.random.default_rng(seed)
+        points = rng.uniform(0, 10, size=(400, 2))
+        edges = _knn_edges(points, 6)
+        truth = (points[:, 0] > 4) + 2 * (points[:, 1] > 6 - seed % 3)
+        unary = rng.uniform(0, 1, size=(400, 5))
+        unary[np.arange(400), truth] -= 0.5
+        kwargs = dict(smoothness=0.3, label_cost=rng.uniform(1.0, 20.0, size=5), max_cycles=3, rng=seed)
+        init = rng.integers(0, 5, size=400)
+        calls = []
+
+        def spy(*args):
+            calls.append(retained(*args))
+            return calls[-1]
+
+        retained = alpha_expansion_module._retained_labels
+        monkeypatch.setattr(alpha_expansion_module, "_retained_labels", spy)
+        pruned = alpha_expansion(unary, edges, init_labels=init, **kwargs)
+        monkeypatch.setattr(alpha_expansion_module, "_retained_labels", _keep_every_gadget)
+        full = alpha_expansion(unary, edges, init_labels=init, **kwargs)
+        assert any(r.any() for r in calls)  # the gadgets were dropped in some moves
+        np.testing.assert_array_equal(pruned.labels, full.labels)
+        assert pruned.energy_history == full.energy_history
+
+    def test_same_result_on_a_real_window(self, monkeypatch):
+        """Level two's labellings of a synthetic window, with and without dropping retained gadgets."""
+        problems = []
+
+        def record(unary, edges, **kwargs):
+            problems.append((unary, edges, kwargs))
+            return alpha_expansion(unary, edges, **kwargs)
+
+        segmenter_module = importlib.import_module("evseg_torch.level_two.segmenter")
+        monkeypatch.setattr(segmenter_module, "alpha_expansion", record)
+        CascadedSegmenter((90, 120))(make_scene((90, 120), n_objects=2, rng=3).events)
+        assert problems
+        dropped = 0
+        for unary, graph, kwargs in problems:
+            pruned = alpha_expansion(unary, graph, **kwargs)
+            with monkeypatch.context() as patch:
+                patch.setattr(alpha_expansion_module, "_retained_labels", _keep_every_gadget)
+                full = alpha_expansion(unary, graph, **kwargs)
+            np.testing.assert_array_equal(pruned.labels, full.labels)
+            assert pruned.energy_history == full.energy_history
+            problem = _prepare(unary, graph, None, kwargs["smoothness"], kwargs["label_cost"], None, 0.0)
+            labels = (
+                np.argmin(problem.unary, axis=1) if kwargs["init_labels"] is None else kwargs["init_labels"]
+            )
+            dropped += sum(self._retained(problem, labels, alpha).sum() for alpha in range(problem.n_labels))
+        assert dropped > 0
 
 
 class TestAlphaExpansion:
