@@ -2,11 +2,15 @@
 
 The recording (``--minutes`` long, written chunk by chunk to an ``.npy`` file so that making it needs
 little memory) repeats a handful of distinct synthetic 30 ms scenes one after another, shifted in time.
-``evseg segment`` runs in a child process; its peak resident memory (the child's own ``ru_maxrss``) is
-reported for each length, so one can check that memory does not grow with the recording's length.
+``evseg segment`` runs in a child process; its peak resident memory (the largest ``ru_maxrss`` of the
+child and its workers) is reported for each length, so one can check that memory does not grow with the
+recording's length.
 
     .venv/bin/python benchmarks/bench_stream.py [--minutes 1 2] [--scenes 8] [--events-per-scene 2500]
-        [--config CONFIG.yaml]
+        [--config CONFIG.yaml] [--workers 2] [--batch-size 8]
+
+Real time means the wall time stays under the recording's length (the ``x real time`` column: its length
+over the wall time, above 1 when faster).
 """
 
 import argparse
@@ -44,18 +48,21 @@ def write_recording(path: Path, minutes: float, n_scenes: int, events_per_scene:
     return total
 
 
-# The child reports its own peak resident memory, so each length is measured on its own.
+# The child reports its peak resident memory (its own, or its largest worker's), so each length is measured
+# on its own.
 CHILD = (
     "import atexit, resource, sys\n"
-    "peak = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+    "who = (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)\n"
+    "peak = lambda: max(resource.getrusage(w).ru_maxrss for w in who)\n"
     "atexit.register(lambda: print('MAXRSS_KIB', peak(), file=sys.stderr))\n"
     "from evseg_torch.cli import main\n"
     "sys.exit(main(sys.argv[1:]))"
 )
 
 
-def run(path: Path, out: Path, config: Path | None = None) -> dict:
+def run(path: Path, out: Path, config: Path | None = None, workers: int = 1, batch_size: int = 1) -> dict:
     args = ["--quiet", "segment", str(path), "--out", str(out), "--sensor-size", f"{SENSOR[0]}x{SENSOR[1]}"]
+    args += ["--workers", str(workers), "--batch-size", str(batch_size)]
     if config is not None:
         args += ["--config", str(config)]
     start = time.perf_counter()
@@ -77,16 +84,23 @@ def main():
     parser.add_argument("--scenes", type=int, default=8)
     parser.add_argument("--events-per-scene", type=int, default=2500)
     parser.add_argument("--config", type=Path, help="YAML config for evseg segment (default: its own)")
+    parser.add_argument("--workers", type=int, default=1, help="evseg segment --workers")
+    parser.add_argument("--batch-size", type=int, default=1, help="evseg segment --batch-size")
     args = parser.parse_args()
-    print(f"{'minutes':>7} {'events':>10} {'windows':>7} {'wall s':>8} {'events/s':>9} {'peak RSS MiB':>12}")
+    print(f"workers {args.workers}, batch size {max(args.batch_size, args.workers)}")
+    print(
+        f"{'minutes':>7} {'events':>10} {'windows':>7} {'wall s':>8} {'events/s':>9} {'windows/s':>9} "
+        f"{'x real time':>11} {'peak RSS MiB':>12}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         for minutes in args.minutes:
             path = Path(tmp) / f"stream_{minutes:g}min.npy"
             n_events = write_recording(path, minutes, args.scenes, args.events_per_scene)
-            result = run(path, Path(tmp) / "out", args.config)
+            result = run(path, Path(tmp) / "out", args.config, args.workers, args.batch_size)
+            wall, windows = result["wall_s"], result["windows"]
             print(
-                f"{minutes:>7g} {n_events:>10} {result['windows']:>7} {result['wall_s']:>8.1f} "
-                f"{n_events / result['wall_s']:>9.0f} {result['peak_rss_mib']:>12.0f}"
+                f"{minutes:>7g} {n_events:>10} {windows:>7} {wall:>8.1f} {n_events / wall:>9.0f} "
+                f"{windows / wall:>9.1f} {minutes * 60 / wall:>11.2f} {result['peak_rss_mib']:>12.0f}"
             )
             path.unlink()
 

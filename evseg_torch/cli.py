@@ -70,7 +70,13 @@ def _parser() -> argparse.ArgumentParser:
         "--stride-ms", type=float, help="step between windows in ms (default: window length)"
     )
     segment.add_argument("--save-images", action="store_true", help="write one Fig. 1 PNG per window")
-    segment.add_argument("--workers", type=int, default=1, help="process this many files in parallel")
+    segment.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes, one core each: several files are shared out among them; one file's windows are "
+        "(the windows of each batch, so the batch size is raised to at least this; results unchanged)",
+    )
     segment.add_argument("--overwrite", action="store_true", help="replace existing output")
     segment.add_argument("--chunk-size", type=int, default=1_000_000, help="events read at a time")
     segment.add_argument(
@@ -232,6 +238,8 @@ def _segment(args) -> int:
     config = load_config(args.config) if args.config else SegmenterConfig()
     if args.batch_size < 1:
         raise EvsegError(f"--batch-size must be at least 1, got {args.batch_size}")
+    if args.workers < 1:
+        raise EvsegError(f"--workers must be at least 1, got {args.workers}")
     jobs = []
     for name in args.inputs:
         path = Path(name)
@@ -256,11 +264,13 @@ def _segment(args) -> int:
         "overwrite": args.overwrite,
         "chunk_size": args.chunk_size,
         "batch_size": args.batch_size,
-        "progress": not args.quiet and args.workers <= 1,
+        "progress": not args.quiet and (args.workers <= 1 or len(jobs) == 1),
     }
     from tqdm.auto import tqdm
 
-    if args.workers <= 1:
+    if args.workers <= 1 or len(jobs) == 1:
+        if args.workers > 1:
+            options.update(workers=args.workers, batch_size=max(args.batch_size, args.workers))
         summaries = [
             segment_file(path, out, sensor_size, config, **options) for path, sensor_size, out in jobs
         ]
@@ -293,9 +303,11 @@ def segment_file(
     overwrite=False,
     chunk_size=1_000_000,
     batch_size=1,
+    workers=1,
     progress=False,
 ) -> dict:
-    """Segment one recording window by window and write its results (see :mod:`evseg_torch.output`)."""
+    """Segment one recording window by window and write its results (see :mod:`evseg_torch.output`);
+    ``batch_size`` and ``workers`` as in :meth:`~evseg_torch.pipeline.CascadedSegmenter.stream`."""
     from tqdm.auto import tqdm
 
     from evseg_torch.config import replace_config
@@ -311,7 +323,7 @@ def segment_file(
     counted = _CountingChunks(iter_event_chunks(path, chunk_size, sensor_size=sensor_size))
     start = time.perf_counter()
     with SegmentationWriter(out, config, save_images=save_images, overwrite=overwrite) as writer:
-        results = segmenter.stream(counted, batch_size=batch_size)
+        results = segmenter.stream(counted, batch_size=batch_size, workers=workers)
         for result in tqdm(results, desc=path.name, unit=" windows", disable=not progress):
             writer.add(result)
         if counted.n_events == 0:

@@ -24,6 +24,7 @@ from evseg_torch.level_one.progressive_x import ProgressiveXResult, progressive_
 from evseg_torch.level_two.iwe import warp_events
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.motion import MotionModel, make_motion_model
+from evseg_torch.workers import WindowPool
 
 _MAX_SPAN_US = np.iinfo(np.int64).max
 # Corner responses and Lucas-Kanade pyramids need a few pixels each way; smaller sensors skip level one.
@@ -263,6 +264,7 @@ class CascadedSegmenter(nn.Module):
         stride_ms: float | None = None,
         events_per_window: int | None = None,
         batch_size: int = 1,
+        workers: int = 1,
     ) -> Iterator[Segmentation]:
         """Segment sliding windows, reusing each window's models to bootstrap the next.
 
@@ -272,16 +274,39 @@ class CascadedSegmenter(nn.Module):
             batch_size: windows segmented together by :meth:`segment_batch`. With more than one, every
                 window of a batch starts from the models of the last window of the batch before (the
                 windows of a batch are segmented at once, so none can wait for its predecessor's).
+            workers: processes that share out the windows of each batch (:mod:`evseg_torch.workers`),
+                one torch thread each; at most ``batch_size``. The results equal those of one process
+                on one torch thread, window by window.
 
         Yields:
             :class:`Segmentation` of each window with at least ``min_events`` events; its ``offset`` and
             ``window_index`` place it in the stream.
 
         Raises:
-            ConfigError: ``batch_size`` is not a positive integer.
+            ConfigError: ``batch_size`` or ``workers`` is not a positive integer, or ``workers`` exceeds
+                ``batch_size``.
         """
-        if isinstance(batch_size, bool) or not isinstance(batch_size, Integral) or batch_size < 1:
-            raise ConfigError(f"batch_size must be a positive integer, got {batch_size!r}")
+        for name, value in (("batch_size", batch_size), ("workers", workers)):
+            if isinstance(value, bool) or not isinstance(value, Integral) or value < 1:
+                raise ConfigError(f"{name} must be a positive integer, got {value!r}")
+        if workers > batch_size:
+            raise ConfigError(
+                f"workers ({workers}) must not exceed batch_size ({batch_size}): the workers share out "
+                "the windows of one batch"
+            )
+        geometry = (window_ms, stride_ms, events_per_window, batch_size)
+        if workers == 1:
+            yield from self._stream(events, *geometry, self._segment)
+            return
+        with WindowPool(self, workers) as pool:
+            yield from self._stream(events, *geometry, pool.segment)
+
+    def _segment(self, windows: list, initial_models) -> list[Segmentation]:
+        """:meth:`segment_batch` with every window starting from the same models."""
+        return self.segment_batch(windows, None, [initial_models] * len(windows))
+
+    def _stream(self, events, window_ms, stride_ms, events_per_window, batch_size, segment):
+        """:meth:`stream` with each batch segmented by ``segment(windows, initial_models)``."""
         chunks = _as_chunks(events, self.sensor_size)
         windows = self.config.window
         if window_ms is None and events_per_window is None:
@@ -295,7 +320,7 @@ class CascadedSegmenter(nn.Module):
         kept = (window for window in cut if len(window.events) >= windows.min_events)
         previous = None
         for batch in _batched(kept, batch_size):
-            results = self.segment_batch([window.events for window in batch], None, [previous] * len(batch))
+            results = segment([window.events for window in batch], previous)
             if self.config.level_one.reuse_models:
                 # A refit that diverged (no motion of this sensor) would only derail the next window.
                 previous = results[-1].models[self.motion.plausible(results[-1].models)]

@@ -217,6 +217,19 @@ def test_workers_segment_files_in_parallel(tmp_path):
         assert labels.shape == (len(load_events(path)),) and labels.max() >= 0
 
 
+def test_workers_share_out_the_windows_of_one_file(tmp_path, capsys):
+    path = _scene_file(tmp_path)
+    written = {}
+    for workers in (1, 2):
+        out = tmp_path / f"out{workers}"
+        args = ["--quiet", "--threads", "1", "segment", str(path), "--out", str(out), "--window-ms", "10"]
+        assert main([*args, "--batch-size", "2", "--workers", str(workers)]) == 0
+        written[workers] = np.load(out / path.stem / "labels.npz")["labels"]
+    np.testing.assert_array_equal(written[1], written[2])
+    assert main(["--quiet", "segment", str(path), "--out", str(tmp_path / "x"), "--workers", "0"]) == 2
+    assert "--workers" in _error_line(capsys)
+
+
 def test_evaluate_eed_on_a_real_sequence(real_data, tmp_path, capsys):
     """The EED protocol end to end on eed_occlusions (13 boxes), with its table, JSON and figure."""
     out = tmp_path / "eed.json"

@@ -236,3 +236,20 @@ def test_stream_in_batches_places_every_window(one_thread):
     assert accuracy(batched) > accuracy(one) - 0.05 and accuracy(batched) > 0.8
     with pytest.raises(ConfigError, match="batch_size"):
         next(segmenter.stream(scene.events, batch_size=0))
+
+
+def test_stream_workers_give_the_results_of_one_process(one_thread):
+    """Two processes share out each batch's windows; every window's result is the one-process result."""
+    scene = make_scene((90, 120), 0.15, n_objects=2, n_events=6000, rng=5)
+    segmenter = CascadedSegmenter((90, 120))
+    one = list(segmenter.stream(scene.events, window_ms=30, batch_size=3))
+    shared = list(segmenter.stream(scene.events, window_ms=30, batch_size=3, workers=2))
+    assert len(one) == len(shared) == 5
+    for a, b in zip(one, shared, strict=True):
+        assert (a.offset, a.window_index) == (b.offset, b.window_index)
+        np.testing.assert_array_equal(a.labels, b.labels)
+        np.testing.assert_array_equal(a.models, b.models)
+    with pytest.raises(ConfigError, match="workers"):
+        next(segmenter.stream(scene.events, batch_size=2, workers=3))
+    with pytest.raises(ConfigError, match="workers"):
+        next(segmenter.stream(scene.events, workers=0))

@@ -1,0 +1,77 @@
+"""Worker processes that segment the windows of a batch side by side, one CPU core each.
+
+A stream's batch holds windows that do not depend on each other (each starts from the models of the
+batch before), so its windows can be shared out among processes. Each worker holds its own copy of the
+segmenter and runs :meth:`~evseg_torch.pipeline.CascadedSegmenter.segment_batch` on its share with one
+torch thread. Level two gives every window of a batch the result it gets alone (bit for bit on one
+torch thread), so the results equal those of one process on one thread, window by window.
+
+Processes, not threads: PyMaxflow holds the GIL through every graph cut, and level one is mostly
+Python. They start the platform's default way, as torch's DataLoader workers do: forked on Linux
+(nothing to re-import), spawned on macOS and Windows, where the calling script needs the usual
+``if __name__ == "__main__":`` guard.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+import torch
+
+__all__ = ["WindowPool"]
+
+_segmenter = None  # each worker's own copy, set once by _start
+
+
+def _start(segmenter) -> None:
+    global _segmenter
+    torch.set_num_threads(1)
+    _segmenter = segmenter
+
+
+def _segment(windows: list, initial_models) -> list:
+    return _segmenter._segment(windows, initial_models)
+
+
+class WindowPool:
+    """A pool of ``workers`` processes, each with a copy of ``segmenter``; use as a context manager.
+
+    Args:
+        segmenter: a :class:`~evseg_torch.pipeline.CascadedSegmenter` (pickled once per worker).
+        workers: number of processes, at least 2.
+    """
+
+    def __init__(self, segmenter, workers: int) -> None:
+        self.workers = workers
+        self._pool = ProcessPoolExecutor(
+            max_workers=workers,
+            initializer=_start,
+            initargs=(segmenter,),
+        )
+
+    def segment(self, windows: Sequence, initial_models) -> list:
+        """Segment ``windows`` (each starting from ``initial_models``), shared out in consecutive parts.
+
+        Args:
+            windows: B windows, each in any form the segmenter accepts.
+            initial_models: :math:`(M, P)` models every window starts from, or ``None``.
+
+        Returns:
+            One :class:`~evseg_torch.pipeline.Segmentation` per window, in order.
+        """
+        parts = [part for part in np.array_split(np.arange(len(windows)), self.workers) if len(part)]
+        futures = [
+            self._pool.submit(_segment, [windows[index] for index in part], initial_models) for part in parts
+        ]
+        return [result for future in futures for result in future.result()]
+
+    def close(self) -> None:
+        self._pool.shutdown(cancel_futures=True)
+
+    def __enter__(self) -> WindowPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
