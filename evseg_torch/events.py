@@ -458,6 +458,18 @@ class EventBatch(NamedTuple):
         return int(self.t.shape[0])
 
 
+def _make_event_batch(cls, iterable) -> EventBatch:
+    fields = tuple(iterable)
+    if len(fields) != len(cls._fields):
+        raise TypeError(f"EventBatch takes {len(cls._fields)} fields, got {len(fields)}")
+    return tuple.__new__(cls, fields)
+
+
+# NamedTuple's own _make, behind _replace, checks len() against the 4 fields, which __len__ changed; a
+# NamedTuple's class body may not redefine it.
+EventBatch._make = classmethod(_make_event_batch)
+
+
 def batch_windows(windows: Sequence[EventBatch]) -> EventBatch:
     """Pad windows into one batch (see :class:`EventBatch`).
 

@@ -284,6 +284,14 @@ class TestEventBatchBatches:
         with pytest.raises(EventFormatError, match="padded batch"):
             window.unbatch()
 
+    def test_replace_swaps_a_field(self):
+        window = self._windows()[0]
+        shifted = window._replace(t=window.t + 1.0)
+        assert isinstance(shifted, EventBatch) and len(shifted) == 5 and shifted.xy is window.xy
+        torch.testing.assert_close(shifted.t, window.t + 1.0)
+        with pytest.raises(TypeError, match="4 fields"):
+            EventBatch._make([window.xy, window.t])
+
     def test_to_casts_events_but_keeps_integer_lengths(self):
         batch = batch_windows(self._windows()).to(torch.float64)
         assert batch.xy.dtype == torch.float64 and batch.lengths.dtype == torch.int64
