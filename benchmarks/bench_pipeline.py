@@ -7,6 +7,7 @@ absent). Prints the median milliseconds of features, level one, level two and th
 the torch thread count.
 
     OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_pipeline.py [--windows 10 --threads 1]
+        [--events 40000]
 """
 
 import argparse
@@ -42,6 +43,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--windows", type=int, default=10)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--events", type=int, help="signal events per 30 ms window (default: generator's)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(f"{cpu_name()}, torch threads {torch.get_num_threads()}")
@@ -49,7 +51,8 @@ def main():
     print(f"{'windows':<28} {'n':>4} {'events':>7} " + " ".join(f"{h:>9}" for h in header))
     cold, reuse, sizes_cold, sizes_reuse = [], [], [], []
     for seed in range(args.windows):
-        scene = make_scene((180, 240), 0.06, 1 + seed % 3, rng=seed)
+        size = {} if args.events is None else {"n_events": 2 * args.events}
+        scene = make_scene((180, 240), 0.06, 1 + seed % 3, rng=seed, **size)
         segmenter = CascadedSegmenter(scene.sensor_size)
         first, second = list(segmenter.stream(scene.events, window_ms=30))[:2]
         cold.append(first.timings_ms)
