@@ -135,7 +135,9 @@ class LevelTwoConfig:
             to ``label_cost_events`` events. 4000 by default:
             with 8000 an object of ~1000 events (5% of a synthetic window) whose level-one model starts
             ~1.5 px off loses its cluster in the first labelling, before a refit can sharpen it.
-        n_iter_segmentation: outer block-coordinate-descent iterations (EMSGC: 5).
+        n_iter_segmentation: outer block-coordinate-descent iterations (EMSGC: 5). 3 by default: over
+            pipeline seeds 0-2 the probe, `hard` and own scenes and EED score within 0.002 of 5 rounds
+            (EED's detection rates equal), and level two takes 0.85 of the time (median per window).
         n_iter_labeling: α-expansion cycles per labelling (EMSGC: 2; one loses nothing measurable here).
         sigma: Gaussian width of the images of warped events, pixels (EMSGC: 1).
         optimizer: ``lbfgs`` or ``adam`` for the contrast-maximisation refits.
@@ -178,7 +180,7 @@ class LevelTwoConfig:
     lambda_data: float = 1.0
     lambda_smooth: float = 30.0
     lambda_label: float = 4000.0
-    n_iter_segmentation: int = 5
+    n_iter_segmentation: int = 3
     n_iter_labeling: int = 1
     sigma: float = 1.0
     optimizer: str = "lbfgs"
