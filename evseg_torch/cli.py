@@ -74,8 +74,8 @@ def _parser() -> argparse.ArgumentParser:
         "--workers",
         type=int,
         default=1,
-        help="processes, one core each: several files are shared out among them; one file's windows are "
-        "(the windows of each batch, so the batch size is raised to at least this; results unchanged)",
+        help="processes, one core each; several files are shared out among them, and a single file's windows "
+        "are, batch by batch (the batch size is raised to at least this; the results do not change)",
     )
     segment.add_argument("--overwrite", action="store_true", help="replace existing output")
     segment.add_argument("--chunk-size", type=int, default=1_000_000, help="events read at a time")

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Iterable, Iterator, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass, replace
 from numbers import Integral, Real
 from pathlib import Path
@@ -294,38 +295,33 @@ class CascadedSegmenter(nn.Module):
                 f"workers ({workers}) must not exceed batch_size ({batch_size}): the workers share out "
                 "the windows of one batch"
             )
-        geometry = (window_ms, stride_ms, events_per_window, batch_size)
-        if workers == 1:
-            yield from self._stream(events, *geometry, self._segment)
-            return
-        with WindowPool(self, workers) as pool:
-            yield from self._stream(events, *geometry, pool.segment)
+        with ExitStack() as stack:
+            segment = self._segment
+            if workers > 1:
+                segment = stack.enter_context(WindowPool(self, workers)).segment
+            chunks = _as_chunks(events, self.sensor_size)
+            windows = self.config.window
+            if window_ms is None and events_per_window is None:
+                window_ms, events_per_window = windows.window_ms, windows.events_per_window
+                if events_per_window is not None:
+                    window_ms = None
+            stride_ms = stride_ms if stride_ms is not None else (windows.stride_ms if window_ms else None)
+            cut = iter_windows(
+                chunks, window_ms=window_ms, stride_ms=stride_ms, events_per_window=events_per_window
+            )
+            kept = (window for window in cut if len(window.events) >= windows.min_events)
+            previous = None
+            for batch in _batched(kept, batch_size):
+                results = segment([window.events for window in batch], previous)
+                if self.config.level_one.reuse_models:
+                    # A refit that diverged (no motion of this sensor) would only derail the next window.
+                    previous = results[-1].models[self.motion.plausible(results[-1].models)]
+                for window, result in zip(batch, results, strict=True):
+                    yield replace(result, offset=window.offset, window_index=window.index)
 
     def _segment(self, windows: list, initial_models) -> list[Segmentation]:
         """:meth:`segment_batch` with every window starting from the same models."""
         return self.segment_batch(windows, None, [initial_models] * len(windows))
-
-    def _stream(self, events, window_ms, stride_ms, events_per_window, batch_size, segment):
-        """:meth:`stream` with each batch segmented by ``segment(windows, initial_models)``."""
-        chunks = _as_chunks(events, self.sensor_size)
-        windows = self.config.window
-        if window_ms is None and events_per_window is None:
-            window_ms, events_per_window = windows.window_ms, windows.events_per_window
-            if events_per_window is not None:
-                window_ms = None
-        stride_ms = stride_ms if stride_ms is not None else (windows.stride_ms if window_ms else None)
-        cut = iter_windows(
-            chunks, window_ms=window_ms, stride_ms=stride_ms, events_per_window=events_per_window
-        )
-        kept = (window for window in cut if len(window.events) >= windows.min_events)
-        previous = None
-        for batch in _batched(kept, batch_size):
-            results = segment([window.events for window in batch], previous)
-            if self.config.level_one.reuse_models:
-                # A refit that diverged (no motion of this sensor) would only derail the next window.
-                previous = results[-1].models[self.motion.plausible(results[-1].models)]
-            for window, result in zip(batch, results, strict=True):
-                yield replace(result, offset=window.offset, window_index=window.index)
 
     def _result(
         self, prepared, batch: EventBatch, two, before_ms: float, level_two_ms: float, as_tensors: bool

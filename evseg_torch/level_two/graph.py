@@ -259,7 +259,7 @@ def _pixels(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _lookups(pixel: np.ndarray, pixel_pairs: np.ndarray, t: np.ndarray) -> _Lookups:
-    """The lookups of :func:`event_graph` over any pixel adjacency.
+    """The lookups of :func:`event_graph` for the given pixel adjacency.
 
     Args:
         pixel: each event's pixel index :math:`(N,)` in ``[0, P)``, every index used.
