@@ -61,6 +61,17 @@ def test_same_seed_same_labels(scene, result):
     np.testing.assert_array_equal(CascadedSegmenter(sensor_size=SIZE)(scene.events).labels, result.labels)
 
 
+@pytest.mark.parametrize("mode", [torch.no_grad, torch.inference_mode])
+def test_works_in_evaluation_loops(scene, result, mode):
+    # Learning pipelines evaluate under no_grad or inference_mode; the fits inside still get gradients.
+    events = to_torch(scene.events)
+    with mode():
+        from_array = CascadedSegmenter(sensor_size=SIZE)(scene.events)
+        from_tensors = CascadedSegmenter(sensor_size=SIZE)(events)
+    np.testing.assert_array_equal(from_array.labels, result.labels)
+    assert torch.equal(from_tensors.labels, torch.as_tensor(result.labels))
+
+
 def test_explicit_reference_time_moves_the_warp(scene, result):
     t_ref = scene.events["t"][-1] * 1e-6
     later = CascadedSegmenter(sensor_size=SIZE)(scene.events, t_ref=t_ref)

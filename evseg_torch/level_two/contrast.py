@@ -553,7 +553,8 @@ class ContrastMaximization(nn.Module):
     ``weights``, each cluster's events of non-zero weight are gathered first, so a fit costs one pass over
     the window's events, not K, and clusters that fill at most a quarter of the sensor are fitted in
     crops around them (see :func:`_crops`). The warp's linear map of the parameters is built once per
-    call. Gradients are enabled inside, so a caller may run under ``torch.no_grad()``.
+    call. Gradients are enabled inside, so a caller may run under ``torch.no_grad()`` or
+    ``torch.inference_mode()``.
 
     A *fit* is the clusters of one window in images of one size (the crops, or the sensor): one parameter
     :math:`(K_f, P)` minimising the sum of their losses, with one optimiser; the clusters are independent,
@@ -668,6 +669,12 @@ class ContrastMaximization(nn.Module):
 
     def _fit_windows(self, events: EventBatch, init: Tensor, weights: Tensor | None) -> Tensor:
         """Fit the clusters of a padded batch: ``init`` :math:`(B, K, P)`, ``weights`` :math:`(B, K, N)`."""
+        if torch.is_inference_mode_enabled():
+            # The fits need autograd, which inference mode forbids even under enable_grad: they leave it,
+            # on ordinary copies of the inference tensors they were given (a caller's evaluation loop).
+            with torch.inference_mode(False):
+                events = EventBatch(*(_ordinary(field) for field in events))
+                return self._fit_windows(events, _ordinary(init), _ordinary(weights))
         n_clusters = init.shape[1]
         mask = events.mask
         durations = torch.where(mask, events.t.abs(), 0).amax(dim=1).tolist()
@@ -1040,3 +1047,10 @@ def _check_image(image: Tensor, name: str) -> None:
         raise ShapeError(f"{name} must be a torch.Tensor, got {type(image).__name__}")
     if image.ndim < 2:
         raise ShapeError(f"{name} must have shape (..., H, W), got {tuple(image.shape)}")
+
+
+def _ordinary(tensor: Tensor | None) -> Tensor | None:
+    """``tensor``, or an ordinary copy of it if it is an inference tensor (which autograd cannot save)."""
+    if tensor is not None and tensor.is_inference():
+        return tensor.clone()
+    return tensor

@@ -345,9 +345,11 @@ class TestBatches:
                 else:
                     torch.testing.assert_close(result.params, single.params)
                     torch.testing.assert_close(result.soft_assignments, single.soft_assignments)
-        if device.type == "cpu":
-            # The windows took 3 to 5 rounds in lockstep; the ones done early dropped out.
-            assert sorted(len(result.energy_history) for result in listed) == [3, 4, 5, 5]
+        # How many rounds each window takes depends on floating-point paths that differ between CPUs, so
+        # only what the lockstep guarantees is asserted: each window stops on its own (its rounds equal its
+        # solo run's, compared above through the energy histories on the CPU), within the configured rounds.
+        limit = segmenter.n_iter_segmentation + segmenter.discovery_rounds * 2
+        assert all(1 <= len(result.energy_history) <= limit for result in listed)
 
     def test_groups_and_chunks_on_the_cpu(self, batch_scenes, monkeypatch):
         # On the CPU a large batch is segmented in groups of windows, and its data terms are computed in
