@@ -5,32 +5,41 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
 import sys
-import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
+from evseg_torch import __version__
 from evseg_torch.errors import EvsegError
 
 log = logging.getLogger("evseg")
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``evseg``; returns the exit status (0 ok, 2 for our errors)."""
+    """Entry point of ``evseg``; returns the exit status.
+
+    0 ok; 1 some inputs failed (``--keep-going``); 2 our errors; 130 stopped by SIGINT (Ctrl-C), 143
+    by SIGTERM (128 + the signal's number, as shells report it).
+    """
+    from evseg_torch.runs import Stopped, one_line, stop_on_signals
+
     parser = _parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
     try:
-        _set_threads(args.threads)
-        return args.run(args) or 0
+        with stop_on_signals():
+            _set_threads(args.threads)
+            return args.run(args) or 0
     except (EvsegError, OSError) as err:
-        print(f"evseg: error: {_one_line(err)}", file=sys.stderr)
+        print(f"evseg: error: {one_line(err)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("evseg: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:
+        signum = err.signum if isinstance(err, Stopped) else signal.SIGINT
+        resumable = " (resume with --resume)" if getattr(args, "run", None) is _segment else ""
+        print(f"evseg: stopped by {signal.Signals(signum).name}{resumable}", file=sys.stderr)
+        return 128 + signum
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -38,58 +47,95 @@ def _parser() -> argparse.ArgumentParser:
         prog="evseg",
         description="Event-camera motion segmentation by cascaded two-level multi-model fitting (IROS 2021).",
     )
-    parser.add_argument("--quiet", action="store_true", help="no progress bars or log lines")
-    parser.add_argument(
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--quiet", action="store_true", default=argparse.SUPPRESS, help="no progress bars or log lines"
+    )
+    common.add_argument(
         "--threads",
         type=int,
-        default=1,
+        default=argparse.SUPPRESS,
         help="torch threads per process (default 1: on shared CPUs more threads wait on each other)",
     )
+    # Accepted before or after the command alike: the commands' parsers set them only when given there.
+    parser.add_argument("--quiet", action="store_true", help="no progress bars or log lines")
+    parser.add_argument("--threads", type=int, default=1, help=common._actions[1].help)
     commands = parser.add_subparsers(title="commands", required=True, metavar="COMMAND")
 
     segment = commands.add_parser(
         "segment",
+        parents=[common],
         help="segment recordings window by window",
-        description="Segment each INPUT window by window; writes labels.npz, models.jsonl, summary.json and "
-        "config.yaml (and Fig. 1 PNGs with --save-images) into OUT/<input name>/.",
+        description="Segment each INPUT window by window into OUT/<name>/: labels.npz, models.jsonl, "
+        "summary.json and config.yaml (and one figure per window in images/ with --save-images); see the "
+        "README's Output section. <name> is the input's stem; inputs whose stems collide are named by their "
+        "parent folders too (a/x/events.txt and b/y/events.txt give x-events and y-events). Results are "
+        "written into OUT/<name>/.partial/ with a checkpoint after every batch of windows and appear only "
+        "when complete; a stopped run (Ctrl-C, SIGTERM, a crash) continues with --resume.",
     )
-    segment.add_argument(
-        "inputs", nargs="+", metavar="INPUT", help="event files (.txt .npy .npz .h5 .aedat4 ...)"
-    )
+    segment.add_argument("inputs", nargs="+", metavar="INPUT", help=f"event files ({_formats()})")
     segment.add_argument("--out", required=True, type=Path, help="output folder")
     segment.add_argument(
         "--config", type=Path, help="YAML config (default: built-in defaults = configs/default.yaml)"
     )
     segment.add_argument(
-        "--sensor-size", type=_sensor_size, help="HxW, e.g. 180x240 (default: from the file)"
+        "--sensor-size",
+        type=_sensor_size,
+        help="HxW, e.g. 180x240, for files that store none (a file's stored size wins: a different size "
+        "given here is an error); with neither, the smallest size that holds the events (one extra pass)",
     )
     size = segment.add_mutually_exclusive_group()
     size.add_argument("--window-ms", type=float, help="window length in ms (default from the config)")
     size.add_argument("--events-per-window", type=int, help="windows of this many events instead")
     segment.add_argument(
-        "--stride-ms", type=float, help="step between windows in ms (default: window length)"
+        "--stride-ms", type=float, help="step between time windows in ms (default: window length)"
     )
-    segment.add_argument("--save-images", action="store_true", help="write one Fig. 1 PNG per window")
+    segment.add_argument(
+        "--start", type=float, metavar="S", help="segment from S seconds after the recording's first event"
+    )
+    segment.add_argument(
+        "--end", type=float, metavar="S", help="segment up to S seconds after the recording's first event"
+    )
+    segment.add_argument(
+        "--max-windows", type=int, metavar="N", help="segment at most the first N windows (of the range)"
+    )
+    segment.add_argument("--save-images", action="store_true", help="write one figure per window")
     segment.add_argument(
         "--workers",
         type=int,
         default=1,
-        help="processes, one core each; several files are shared out among them, and a single file's windows "
-        "are, batch by batch (the batch size is raised to at least this; the results do not change)",
+        help="processes, one core each: several inputs are shared out among them file by file; one input's "
+        "windows are shared out batch by batch, so with one input --workers needs --batch-size of at least "
+        "as many (otherwise one process runs). The results do not change with --workers",
     )
-    segment.add_argument("--overwrite", action="store_true", help="replace existing output")
-    segment.add_argument("--chunk-size", type=int, default=1_000_000, help="events read at a time")
     segment.add_argument(
         "--batch-size",
         type=int,
         default=1,
         help="windows segmented together by one batched level two (default 1); each window of a batch "
-        "starts from the models of the previous batch's last window",
+        "starts from the models of the previous batch's last window, so the batch size changes results",
     )
+    again = segment.add_mutually_exclusive_group()
+    again.add_argument("--overwrite", action="store_true", help="replace this run's inputs' existing results")
+    again.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue stopped runs from their last checkpoint (same inputs, config and options) and skip "
+        "finished ones; the results equal an uninterrupted run's",
+    )
+    segment.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="report an input that fails (one line) and segment the others; exit status 1 if any failed",
+    )
+    segment.add_argument("--chunk-size", type=int, default=1_000_000, help="events read at a time")
+    _add_device(segment)
     segment.set_defaults(run=_segment)
 
     demo = commands.add_parser(
         "demo",
+        parents=[common],
         help="segment a synthetic scene and draw it",
         description="Generate a synthetic scene, segment it, and write demo.png (the paper's Fig. 1 panels) "
         "and metrics.json with the metrics against ground truth.",
@@ -100,6 +146,7 @@ def _parser() -> argparse.ArgumentParser:
 
     simulate = commands.add_parser(
         "simulate",
+        parents=[common],
         help="write synthetic scenes with ground truth",
         description="Write synthetic event scenes as .npz files (events t_us/x/y/p, per-event labels as "
         "`labels` and `label`, `ambiguous` flags, motions, sensor size): the layout of "
@@ -120,11 +167,15 @@ def _parser() -> argparse.ArgumentParser:
     simulate.set_defaults(run=_simulate)
 
     evaluate = commands.add_parser(
-        "evaluate", help="evaluate against ground truth", description="Evaluation protocols of the paper."
+        "evaluate",
+        parents=[common],
+        help="evaluate against ground truth",
+        description="Evaluation protocols of the paper.",
     )
     protocols = evaluate.add_subparsers(title="protocols", required=True, metavar="PROTOCOL")
     synthetic = protocols.add_parser(
         "synthetic",
+        parents=[common],
         help="accuracy, IoU and detection on synthetic scenes",
         description="Synthetic benchmark.",
     )
@@ -142,9 +193,11 @@ def _parser() -> argparse.ArgumentParser:
         "runs (default: the config's seed)",
     )
     synthetic.add_argument("--json", type=Path, help="also write the results as JSON")
+    _add_device(synthetic)
     synthetic.set_defaults(run=_evaluate_synthetic)
     eed = protocols.add_parser(
         "eed",
+        parents=[common],
         help="EED detection rate (paper Table I)",
         description="Detection rate on EED sequences: for each GT box, segment the window centred on its "
         "time "
@@ -172,9 +225,11 @@ def _parser() -> argparse.ArgumentParser:
         help="write DIR/<sequence>.png: each window's compensated clusters with the GT box (red) and the "
         "matched cluster's box (dashed)",
     )
+    _add_device(eed)
     eed.set_defaults(run=_evaluate_eed)
     evimo = protocols.add_parser(
         "evimo",
+        parents=[common],
         help="EV-IMO IoU (convex-hull and event-wise)",
         description="EV-IMO protocol: windows at the mask timestamps; reports the convex-hull mask IoU "
         "(IROS/EMSGC definition) and the event-wise IoU (MOMS/0-MMS/SpikeMS definition).",
@@ -186,9 +241,11 @@ def _parser() -> argparse.ArgumentParser:
     evimo.add_argument("--config", type=Path, help="YAML config")
     evimo.add_argument("--window-ms", type=float, help="window length (default from the config)")
     evimo.add_argument("--json", type=Path, help="also write the results as JSON")
+    _add_device(evimo)
     evimo.set_defaults(run=_evaluate_evimo)
     labelled = protocols.add_parser(
         "labelled",
+        parents=[common],
         help="accuracy, IoU and detection on files with per-event labels",
         description="Segment each labelled .npz FILE as one window and score it against its per-event "
         "labels (0 background, 1..K moving objects, -1 noise), e.g. ../shared/data/synthetic_probe/*.npz. "
@@ -227,122 +284,143 @@ def _parser() -> argparse.ArgumentParser:
         "--sensor-size", type=_sensor_size, help="HxW (default: the file's sensor_size, height and width)"
     )
     labelled.add_argument("--json", type=Path, help="also write the results as JSON")
+    _add_device(labelled)
     labelled.set_defaults(run=_evaluate_labelled)
     return parser
 
 
 def _segment(args) -> int:
     from evseg_torch.config import SegmenterConfig, load_config
-    from evseg_torch.io import SUPPORTED_SUFFIXES, read_sensor_size
+    from evseg_torch.io import resolve_sensor_size, scan_sensor_size
+    from evseg_torch.runs import Job, check_input, output_folders, segment_files, with_window
 
     config = load_config(args.config) if args.config else SegmenterConfig()
-    if args.batch_size < 1:
-        raise EvsegError(f"--batch-size must be at least 1, got {args.batch_size}")
-    if args.workers < 1:
-        raise EvsegError(f"--workers must be at least 1, got {args.workers}")
-    jobs = []
-    for name in args.inputs:
-        path = Path(name)
-        if not path.is_file():
-            raise EvsegError(f"{path}: no such file")
-        if path.suffix.lower() not in SUPPORTED_SUFFIXES:
-            raise EvsegError(
-                f"{path}: unknown format {path.suffix!r}; supported: {' '.join(SUPPORTED_SUFFIXES)}"
+    _check_counts(args, "batch_size", "workers", "max_windows", "chunk_size", "events_per_window")
+    if args.events_per_window is not None and args.stride_ms is not None:
+        raise EvsegError("--stride-ms applies to time windows, not to --events-per-window")
+    for name in ("start", "end"):
+        value = getattr(args, name)
+        if value is not None and not (np.isfinite(value) and value >= 0):
+            raise EvsegError(f"--{name} must be a number of seconds of at least 0, got {value:g}")
+    if args.start is not None and args.end is not None and args.end <= args.start:
+        raise EvsegError(f"--end ({args.end:g} s) must come after --start ({args.start:g} s)")
+    device = _device(args.device)
+    config = with_window(config, args.window_ms, args.stride_ms, args.events_per_window)
+    workers_per_file = 1
+    if len(args.inputs) == 1 and args.workers > 1:
+        if args.batch_size < args.workers:
+            log.warning(
+                "evseg: --workers %d has nothing to share with --batch-size %d on one input: one process "
+                "runs (pass --batch-size %d or more to share each batch's windows)",
+                args.workers,
+                args.batch_size,
+                args.workers,
             )
-        sensor_size = args.sensor_size or read_sensor_size(path)
-        if sensor_size is None:
-            raise EvsegError(f"{path}: the file does not store the sensor size; pass --sensor-size HxW")
-        out = args.out / path.stem
-        if out.exists() and any(out.iterdir()) and not args.overwrite:
-            raise EvsegError(f"output folder {out} is not empty; pass --overwrite to replace it")
-        jobs.append((path, tuple(sensor_size), out))
-    options = {
-        "window_ms": args.window_ms,
-        "stride_ms": args.stride_ms,
-        "events_per_window": args.events_per_window,
-        "save_images": args.save_images,
-        "overwrite": args.overwrite,
-        "chunk_size": args.chunk_size,
-        "batch_size": args.batch_size,
-        "progress": not args.quiet and (args.workers <= 1 or len(jobs) == 1),
-    }
-    from tqdm.auto import tqdm
-
-    if args.workers <= 1 or len(jobs) == 1:
-        if args.workers > 1:
-            options.update(workers=args.workers, batch_size=max(args.batch_size, args.workers))
-        summaries = [
-            segment_file(path, out, sensor_size, config, **options) for path, sensor_size, out in jobs
-        ]
-    else:
-        with ProcessPoolExecutor(max_workers=args.workers, initializer=_single_thread) as pool:
-            futures = [pool.submit(segment_file, p, o, s, config, **options) for p, s, o in jobs]
-            summaries = [f.result() for f in tqdm(futures, desc="files", disable=args.quiet)]
-    for (path, _, out), summary in zip(jobs, summaries, strict=True):
+        else:
+            workers_per_file = args.workers
+    jobs, failed = [], []
+    folders = output_folders(args.inputs, args.out)
+    for name, out in zip(args.inputs, folders, strict=True):
+        try:
+            path = check_input(name)
+            sensor_size = resolve_sensor_size(path, args.sensor_size)
+            if sensor_size is None:
+                sensor_size = scan_sensor_size(path, args.chunk_size)
+                log.info(
+                    "%s stores no sensor size: %dx%d, the smallest that holds its events (or pass "
+                    "--sensor-size HxW)",
+                    path.name,
+                    *sensor_size,
+                )
+        except (EvsegError, OSError) as err:
+            if not args.keep_going:
+                raise
+            failed.append(_report(name, err))
+            continue
+        jobs.append(
+            Job(
+                path=path,
+                out=out,
+                sensor_size=sensor_size,
+                config=config,
+                start_s=args.start,
+                end_s=args.end,
+                max_windows=args.max_windows,
+                batch_size=args.batch_size,
+                workers=workers_per_file,
+                save_images=args.save_images,
+                overwrite=args.overwrite,
+                resume=args.resume,
+                chunk_size=args.chunk_size,
+                device=device,
+            )
+        )
+    outcomes = segment_files(jobs, workers=args.workers, keep_going=args.keep_going, progress=not args.quiet)
+    for job, summary, error in outcomes:
+        if error is not None:
+            failed.append(f"{job.path}: {error}")
+            continue
         log.info(
             "%s: %d events, %d windows, %.0f events/s -> %s",
-            path.name,
+            job.path.name,
             summary["events"],
             summary["windows"],
             summary["events_per_s"] or 0,
-            out,
+            job.out,
         )
+    if failed:
+        log.error("evseg: %d of %d inputs failed:", len(failed), len(args.inputs))
+        for line in failed:
+            log.error("  %s", line)
+        return 1
     return 0
 
 
-def segment_file(
-    path,
-    out,
-    sensor_size,
-    config,
-    *,
-    window_ms=None,
-    stride_ms=None,
-    events_per_window=None,
-    save_images=False,
-    overwrite=False,
-    chunk_size=1_000_000,
-    batch_size=1,
-    workers=1,
-    progress=False,
-) -> dict:
-    """Segment one recording window by window and write its results (see :mod:`evseg_torch.output`);
-    ``batch_size`` and ``workers`` as in :meth:`~evseg_torch.pipeline.CascadedSegmenter.stream`."""
-    from tqdm.auto import tqdm
+def _report(name, err: BaseException) -> str:
+    from evseg_torch.runs import one_line
 
-    from evseg_torch.config import replace_config
-    from evseg_torch.io import iter_event_chunks
-    from evseg_torch.output import SegmentationWriter
-    from evseg_torch.pipeline import CascadedSegmenter
-
-    overrides = {k: v for k, v in {"window_ms": window_ms, "stride_ms": stride_ms}.items() if v is not None}
-    if events_per_window is not None:
-        overrides["events_per_window"] = events_per_window
-    config = replace_config(config, **overrides)
-    segmenter = CascadedSegmenter(sensor_size, config)
-    counted = _CountingChunks(iter_event_chunks(path, chunk_size, sensor_size=sensor_size))
-    start = time.perf_counter()
-    with SegmentationWriter(out, config, save_images=save_images, overwrite=overwrite) as writer:
-        results = segmenter.stream(counted, batch_size=batch_size, workers=workers)
-        for result in tqdm(results, desc=path.name, unit=" windows", disable=not progress):
-            writer.add(result)
-        if counted.n_events == 0:
-            raise EvsegError(f"{path}: the recording holds no events")
-        extra = {"input": str(path), "sensor_size": list(sensor_size)}
-        return writer.close(counted.n_events, time.perf_counter() - start, extra)
+    message = one_line(err)
+    log.error("evseg: error: %s", message)
+    return message if str(name) in message else f"{name}: {message}"
 
 
-class _CountingChunks:
-    """Pass chunks through while counting events, so the stream is read once."""
+def _check_counts(args, *names: str) -> None:
+    """Counts given on the command line must be positive."""
+    for name in names:
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise EvsegError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
 
-    def __init__(self, chunks):
-        self.chunks = chunks
-        self.n_events = 0
 
-    def __iter__(self):
-        for chunk in self.chunks:
-            self.n_events += len(chunk)
-            yield chunk
+def _add_device(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--device", default="cpu", help="torch device of level two, e.g. cpu (default), cuda, cuda:1, mps"
+    )
+
+
+def _device(name: str) -> str:
+    """``name`` if torch has such a device here, else a one-line error."""
+    import torch
+
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise EvsegError(f"--device {name}: not a torch device name (e.g. cpu, cuda, cuda:0)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise EvsegError(f"--device {name}: this torch ({torch.__version__}) sees no CUDA device")
+    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
+        raise EvsegError(f"--device {name}: only {torch.cuda.device_count()} CUDA devices here")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise EvsegError(f"--device {name}: no MPS device here")
+    if device.type not in ("cpu", "cuda", "mps"):
+        raise EvsegError(f"--device {name}: only cpu, cuda and mps are supported")
+    return name
+
+
+def _formats() -> str:
+    from evseg_torch.io import SUPPORTED_SUFFIXES
+
+    return " ".join(SUPPORTED_SUFFIXES)
 
 
 def _set_threads(threads: int) -> None:
@@ -351,10 +429,6 @@ def _set_threads(threads: int) -> None:
     import torch
 
     torch.set_num_threads(threads)
-
-
-def _single_thread() -> None:
-    _set_threads(1)
 
 
 def _demo(args) -> int:
@@ -439,6 +513,7 @@ def _evaluate_synthetic(args) -> int:
     runs = {}
     for pipeline_seed in args.pipeline_seeds or [config.seed]:
         segmenter = CascadedSegmenter((180, 240), replace_config(config, seed=pipeline_seed))
+        segmenter = segmenter.to(_device(args.device))
         runs[pipeline_seed] = evaluate_synthetic(
             segmenter, seeds, family=args.family, progress=not args.quiet
         )
@@ -505,6 +580,7 @@ def _evaluate_eed(args) -> int:
             reference=reference,
             progress=not args.quiet,
             on_window=draw if args.figures else None,
+            device=_device(args.device),
         )
         rows[sequence.name] = {
             **detection_rate(results),
@@ -546,7 +622,7 @@ def _evaluate_evimo(args) -> int:
 
     config = load_config(args.config) if args.config else SegmenterConfig()
     sequence = load_evimo(args.path, trusted=args.trusted)
-    segmenter = CascadedSegmenter(sequence.sensor_size, config)
+    segmenter = CascadedSegmenter(sequence.sensor_size, config).to(_device(args.device))
     results = evaluate_evimo(
         segmenter, sequence, window_ms=args.window_ms or config.window.window_ms, progress=not args.quiet
     )
@@ -577,7 +653,12 @@ def _evaluate_labelled(args) -> int:
     else:
         config = load_config(args.config) if args.config else SegmenterConfig()
         scores = evaluate_labelled(
-            args.files, config, method=args.method or "evseg", progress=not args.quiet, **fields
+            args.files,
+            config,
+            method=args.method or "evseg",
+            progress=not args.quiet,
+            device=_device(args.device),
+            **fields,
         )
     method = scores[0].method
     width = max(len(method), 6)
@@ -678,10 +759,6 @@ def _seed_range(text: str) -> list[int]:
         return [int(v) for v in text.split(",")]
     except ValueError:
         raise argparse.ArgumentTypeError(f"seeds must look like 0-19 or 1,2,5, got {text!r}") from None
-
-
-def _one_line(err: BaseException) -> str:
-    return " ".join(str(err).split()) or type(err).__name__
 
 
 if __name__ == "__main__":

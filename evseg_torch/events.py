@@ -93,11 +93,17 @@ def as_events(data, sensor_size: tuple[int, int] | None = None) -> np.ndarray:
 def check_sensor_size(sensor_size) -> tuple[int, int]:
     """Return ``(H, W)`` as ints, or raise :class:`EventFormatError` naming what is wrong."""
     try:
-        height, width = (int(v) for v in sensor_size)
+        height, width = (v.item() if isinstance(v, np.generic | np.ndarray) else v for v in sensor_size)
     except (TypeError, ValueError):
         raise EventFormatError(f"sensor_size must be (H, W), got {sensor_size!r}") from None
+    for value in (height, width):
+        if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
+            raise EventFormatError(f"sensor_size (H, W) must be whole numbers, got {height!r} x {width!r}")
+    height, width = int(height), int(width)
     if not (0 < height <= _MAX_COORDINATE + 1 and 0 < width <= _MAX_COORDINATE + 1):
-        raise EventFormatError(f"sensor_size (H, W) must be positive and at most 32768, got {sensor_size!r}")
+        raise EventFormatError(
+            f"sensor_size (H, W) must be positive and at most 32768, got {height} x {width}"
+        )
     return height, width
 
 

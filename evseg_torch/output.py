@@ -1,24 +1,26 @@
-"""Writers of segmentation results, streaming so memory stays bounded by one window.
+"""Writers of segmentation results: streaming, resumable, and published only when complete.
 
-Layout of one recording's output folder:
+One recording's output folder holds, once its run has finished, ``labels.npz``, ``models.jsonl``,
+``summary.json``, ``config.yaml`` and, with figures, ``images/`` (the README's "Output" section describes
+every file and field). While the run goes on, everything is written into the folder's hidden ``.partial/``
+with a checkpoint (``state.json``) after every batch of windows; nothing partial is ever presented as a
+result. When the run ends, each finished file is moved into the folder by a rename, ``summary.json``
+last, so a folder with a ``summary.json`` and no ``.partial/`` is complete.
 
-* ``labels.npz``: ``labels`` (int64, the cluster of each event within its window, ``-1`` for events in
-  no segmented window) and ``window`` (int64, the window of each event, ``-1`` likewise), both in input
-  order. With overlapping windows an event keeps the label of the first window that holds it. Cluster
-  numbers are per window: cluster ``k`` of window ``w`` is row ``k`` of that window's models.
-* ``models.jsonl``: one JSON object per segmented window: index, first event, event count, ``t_ref``
-  (seconds), motion model, models (rows of parameters), level-one model count and timings in ms.
-* ``summary.json``: totals, events per second, windows, and per-stage timing statistics.
-* ``config.yaml``: the resolved configuration.
-* ``images/NNNNNN.png`` (optional): the paper's Fig. 1 panels for each window.
+A stopped run (killed, interrupted, out of disk) keeps its ``.partial/``; :class:`SegmentationWriter` with
+``resume=True`` truncates the files to the last checkpoint and carries on from there, provided the run's
+identity (input file, configuration, options that change results) is the same. The checkpoint records
+the number of windows written, the events labelled so far and the size of ``models.jsonl``; the last
+window's models, which the next window starts from, are read back from ``models.jsonl`` itself.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
-import tempfile
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,57 +28,116 @@ import numpy as np
 from evseg_torch.config import SegmenterConfig, dump_config
 from evseg_torch.errors import EvsegError
 
+PARTIAL = ".partial"
+_STATE = "state.json"
+_FINISHED = ("config.yaml", "models.jsonl", "labels.npz", "images", "summary.json")  # in publishing order
+
 
 class OutputExistsError(EvsegError, FileExistsError):
-    """The output folder already holds results and overwriting was not asked for."""
+    """The output folder already holds results and neither overwriting nor resuming was asked for."""
+
+
+class ResumeError(EvsegError):
+    """A stopped run cannot be resumed as asked: its input or configuration changed."""
+
+
+@dataclass(frozen=True)
+class ResumePoint:
+    """Where a resumed run carries on.
+
+    Attributes:
+        next_window: index of the first window still to segment.
+        models: the models of the last window written, :math:`(M, P)` float64, or ``None`` if none was.
+        n_windows: windows already written.
+    """
+
+    next_window: int
+    models: np.ndarray | None
+    n_windows: int
+
+
+def folder_state(folder: str | Path) -> str:
+    """``"empty"`` (absent or empty), ``"finished"``, ``"stopped"`` (a run to resume) or ``"other"``."""
+    folder = Path(folder)
+    if (folder / PARTIAL / _STATE).is_file():
+        return "stopped"
+    if not folder.is_dir() or not any(folder.iterdir()):
+        return "empty"
+    return "finished" if (folder / "summary.json").is_file() else "other"
 
 
 class SegmentationWriter:
-    """Write one recording's per-window results as they come; as a context manager, an error inside
-    the block removes the partial results.
+    """Write one recording's per-window results as they come; use as a context manager.
+
+    An :class:`~evseg_torch.errors.EvsegError` inside the block (a bad input) removes the partial
+    results; any other exit from it (an interrupt, a full disk) keeps them to resume from.
 
     Args:
         folder: output folder of this recording; created if missing.
         config: the configuration used, copied as ``config.yaml``.
-        save_images: also write one Fig. 1 PNG per window.
-        overwrite: replace existing results; otherwise an existing non-empty folder is an error.
+        run: what identifies the run (input, options that change results), JSON-serialisable; a resumed
+            run must match it, and a folder holding another input's results is never replaced.
+        save_images: also write one figure per window into ``images/``.
+        overwrite: replace this input's existing results, finished or stopped.
+        resume: continue a stopped run from its last checkpoint (:attr:`resume_point`); for a finished
+            run nothing is written and :attr:`summary` holds its summary.
+
+    Raises:
+        OutputExistsError: the folder holds results and neither ``overwrite`` nor ``resume`` applies, or it
+            holds another input's results.
+        ResumeError: the stopped run's input, configuration or options differ from ``run``.
     """
 
     def __init__(
-        self, folder: str | Path, config: SegmenterConfig, save_images: bool = False, overwrite: bool = False
+        self,
+        folder: str | Path,
+        config: SegmenterConfig,
+        run: dict | None = None,
+        save_images: bool = False,
+        overwrite: bool = False,
+        resume: bool = False,
     ):
         self.folder = Path(folder)
-        if self.folder.exists() and any(self.folder.iterdir()):
-            if not overwrite:
-                raise OutputExistsError(
-                    f"output folder {self.folder} is not empty; pass --overwrite to replace it"
-                )
-            shutil.rmtree(self.folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        dump_config(config, self.folder / "config.yaml")
+        self.partial = self.folder / PARTIAL
+        self.run = _plain(run or {})
         self.save_images = save_images
-        if save_images:
-            (self.folder / "images").mkdir()
-        self._scratch = tempfile.TemporaryDirectory(dir=self.folder, prefix=".partial-")
-        self._labels = open(Path(self._scratch.name) / "labels.bin", "wb")
-        self._windows = open(Path(self._scratch.name) / "window.bin", "wb")
-        self._models = open(self.folder / "models.jsonl", "w")
-        self.written = 0
         self.timings: dict[str, list[float]] = {}
-        self.n_windows = 0
+        self.written = self.n_windows = 0
+        self.wall_s = 0.0
+        self.resume_point: ResumePoint | None = None
+        self.summary: dict | None = None
+        state = folder_state(self.folder)
+        self._check_owner(state)
+        if state == "stopped" and resume:
+            self._reopen()
+            state = folder_state(self.folder)
+        if state == "finished" and resume:
+            self.summary = json.loads((self.folder / "summary.json").read_text())
+        if self.summary is not None or self.resume_point is not None:
+            return
+        if state != "empty":
+            if not overwrite:
+                raise OutputExistsError(_refusal(self.folder, state))
+            shutil.rmtree(self.folder)
+        self.partial.mkdir(parents=True)
+        dump_config(config, self.partial / "config.yaml")
+        self._open("wb", "w")
+        self.checkpoint()
 
     def __enter__(self) -> SegmentationWriter:
         return self
 
     def __exit__(self, kind, error, traceback) -> None:
-        if kind is not None:
+        if kind is None:
+            return
+        if issubclass(kind, EvsegError):
             self.abort()
+        else:
+            self._close_files()
 
     def abort(self) -> None:
-        """Close everything and remove the partial results, e.g. when the input turns out to be bad."""
-        for handle in (self._labels, self._windows, self._models):
-            handle.close()
-        self._scratch.cleanup()
+        """Close everything and remove the results, e.g. when the input turns out to be bad."""
+        self._close_files()
         shutil.rmtree(self.folder, ignore_errors=True)
 
     def add(self, segmentation) -> None:
@@ -98,46 +159,185 @@ class SegmentationWriter:
             "timings_ms": segmentation.timings_ms,
         }
         self._models.write(json.dumps(record) + "\n")
-        for stage, value in segmentation.timings_ms.items():
-            self.timings.setdefault(stage, []).append(value)
-        self.n_windows += 1
+        self._count(record)
+        self._next_window = index + 1
         if self.save_images:
             from evseg_torch.viz import fig1_figure, save_figure
 
             figure = fig1_figure(segmentation, title=f"window {index}")
-            save_figure(figure, self.folder / "images" / f"{index:06d}.png")
+            save_figure(figure, self.partial / "images" / f"{index:06d}.png")
 
-    def close(self, n_events: int, wall_s: float, extra: dict | None = None) -> dict:
-        """Finish ``labels.npz`` and write ``summary.json``; returns the summary."""
-        if n_events > self.written:
+    def checkpoint(self, wall_s: float = 0.0) -> None:
+        """Record that everything added so far is complete: a stopped run resumes from here.
+
+        Args:
+            wall_s: seconds spent since the last checkpoint, added to the run's total.
+        """
+        for handle in (self._labels, self._windows, self._models):
+            handle.flush()
+        self.wall_s += wall_s
+        self._write_state(finished=False)
+
+    def close(self, n_events: int | None, wall_s: float, extra: dict | None = None) -> dict:
+        """Finish ``labels.npz`` and ``summary.json`` and publish the results; returns the summary.
+
+        Args:
+            n_events: events the labels cover (those after the last window are labelled -1); ``None``
+                for exactly those written.
+            wall_s: seconds spent since the last checkpoint.
+            extra: more fields of ``summary.json``.
+        """
+        if n_events is not None and n_events > self.written:
             self._write_labels(np.full(n_events - self.written, -1), np.full(n_events - self.written, -1))
-        self._labels.close()
-        self._windows.close()
-        self._models.close()
+        self._close_files()
         with zipfile.ZipFile(
-            self.folder / "labels.npz", "w", compression=zipfile.ZIP_STORED, allowZip64=True
+            self.partial / "labels.npz", "w", compression=zipfile.ZIP_STORED, allowZip64=True
         ) as archive:
             for name in ("labels", "window"):
-                _stream_npy(archive, name, Path(self._scratch.name) / f"{name}.bin", self.written)
-        self._scratch.cleanup()
+                _stream_npy(archive, name, self.partial / f"{name}.bin", self.written)
+        self.wall_s += wall_s
         summary = {
-            "events": int(n_events),
+            "events": int(self.written),
             "windows": self.n_windows,
-            "wall_s": wall_s,
-            "events_per_s": n_events / wall_s if wall_s > 0 else None,
+            "wall_s": self.wall_s,
+            "events_per_s": self.written / self.wall_s if self.wall_s > 0 else None,
             "timings_ms": {
                 stage: {"median": float(np.median(v)), "mean": float(np.mean(v)), "max": float(np.max(v))}
                 for stage, v in self.timings.items()
             },
             **(extra or {}),
+            "run": self.run,
         }
-        (self.folder / "summary.json").write_text(json.dumps(summary, indent=2))
+        (self.partial / "summary.json").write_text(json.dumps(summary, indent=2))
+        self._write_state(finished=True)
+        publish(self.folder)
         return summary
+
+    def _open(self, binary: str, text: str) -> None:
+        self._labels = open(self.partial / "labels.bin", binary)
+        self._windows = open(self.partial / "window.bin", binary)
+        self._models = open(self.partial / "models.jsonl", text)
+        self._next_window = 0
+        if self.save_images:
+            (self.partial / "images").mkdir(exist_ok=True)
+
+    def _reopen(self) -> None:
+        """Truncate a stopped run's files to its last checkpoint and carry on from there."""
+        state = json.loads((self.partial / _STATE).read_text())
+        difference = _first_difference(state.get("run", {}), self.run)
+        if difference:
+            raise ResumeError(f"cannot resume {self.folder}: {difference} differs from the stopped run's")
+        if state.get("finished"):
+            publish(self.folder)  # stopped while publishing
+            return
+        self.written, self.wall_s = state["written"], state["wall_s"]
+        for name in ("labels.bin", "window.bin"):
+            os.truncate(self.partial / name, 8 * self.written)
+        os.truncate(self.partial / "models.jsonl", state["models_bytes"])
+        last = None
+        with open(self.partial / "models.jsonl") as rows:
+            for line in rows:
+                last = json.loads(line)
+                self._count(last)
+        self._open("ab", "a")
+        self._next_window = state["next_window"]
+        models = None if last is None else np.array(last["models"], dtype=np.float64)
+        self.resume_point = ResumePoint(self._next_window, models, self.n_windows)
+
+    def _count(self, record: dict) -> None:
+        for stage, value in record["timings_ms"].items():
+            self.timings.setdefault(stage, []).append(value)
+        self.n_windows += 1
+
+    def _write_state(self, finished: bool) -> None:
+        state = {
+            "run": self.run,
+            "finished": finished,
+            "n_windows": self.n_windows,
+            "next_window": self._next_window,
+            "written": self.written,
+            "models_bytes": (self.partial / "models.jsonl").stat().st_size,
+            "wall_s": self.wall_s,
+        }
+        scratch = self.partial / f"{_STATE}.new"
+        scratch.write_text(json.dumps(state))
+        os.replace(scratch, self.partial / _STATE)
+
+    def _check_owner(self, state: str) -> None:
+        """Refuse, whatever the flags, to replace or resume another input's results."""
+        if state not in ("finished", "stopped") or "input" not in self.run:
+            return
+        if state == "finished":
+            theirs = json.loads((self.folder / "summary.json").read_text()).get("run", {}).get("input")
+        else:
+            theirs = json.loads((self.partial / _STATE).read_text()).get("run", {}).get("input")
+        ours = self.run["input"]
+        if theirs is not None and theirs.get("path") != ours.get("path"):
+            raise OutputExistsError(
+                f"output folder {self.folder} holds the results of {theirs.get('path')}, not of "
+                f"{ours.get('path')}; choose another --out"
+            )
+
+    def _close_files(self) -> None:
+        for name in ("_labels", "_windows", "_models"):
+            handle = getattr(self, name, None)
+            if handle is not None:
+                handle.close()
 
     def _write_labels(self, labels: np.ndarray, windows: np.ndarray) -> None:
         labels.astype("<i8").tofile(self._labels)
         windows.astype("<i8").tofile(self._windows)
         self.written += len(labels)
+
+
+def publish(folder: str | Path) -> None:
+    """Move a finished run's files from ``.partial/`` into ``folder``, ``summary.json`` last.
+
+    Each file moves by a rename, so each appears whole; a publication that was itself stopped is
+    completed by calling this again (what already moved is skipped).
+    """
+    folder = Path(folder)
+    partial = folder / PARTIAL
+    for name in _FINISHED:
+        if (partial / name).exists():
+            if (folder / name).is_dir():
+                shutil.rmtree(folder / name)
+            os.replace(partial / name, folder / name)
+    shutil.rmtree(partial)
+
+
+def _refusal(folder: Path, state: str) -> str:
+    if state == "stopped":
+        return (
+            f"output folder {folder} holds a stopped run; pass --resume to continue it or --overwrite to "
+            "start again"
+        )
+    if state == "finished":
+        return f"output folder {folder} holds finished results; pass --overwrite to replace them"
+    return f"output folder {folder} is not empty; pass --overwrite to replace it"
+
+
+def _first_difference(before, now, where: str = "") -> str | None:
+    """The first key path at which two JSON-like values differ, described for a message; ``None`` if equal."""
+    if isinstance(before, dict) and isinstance(now, dict):
+        for key in sorted(set(before) | set(now)):
+            found = _first_difference(before.get(key), now.get(key), f"{where}.{key}" if where else key)
+            if found:
+                return found
+        return None
+    if before != now:
+        return f"{where or 'the run'} ({_short(before)} then, {_short(now)} now)"
+    return None
+
+
+def _short(value) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _plain(value):
+    """``value`` as it reads back from JSON (tuples become lists), so identities compare equal."""
+    return json.loads(json.dumps(value))
 
 
 def _stream_npy(archive: zipfile.ZipFile, name: str, raw: Path, count: int) -> None:

@@ -5,6 +5,7 @@ This is the only module that knows both levels (level one never imports level tw
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Iterable, Iterator, Sequence
@@ -266,6 +267,9 @@ class CascadedSegmenter(nn.Module):
         events_per_window: int | None = None,
         batch_size: int = 1,
         workers: int = 1,
+        first_window: int = 0,
+        max_windows: int | None = None,
+        initial_models: np.ndarray | None = None,
     ) -> Iterator[Segmentation]:
         """Segment sliding windows, reusing each window's models to bootstrap the next.
 
@@ -278,6 +282,11 @@ class CascadedSegmenter(nn.Module):
             workers: processes that share out the windows of each batch (:mod:`evseg_torch.workers`),
                 one torch thread each; at most ``batch_size``. The results equal those of one process
                 on one torch thread, window by window.
+            first_window: windows before this index are cut but not segmented: a stopped stream resumes
+                here, with ``initial_models`` the models of the last window it segmented (its batches then
+                line up with the uninterrupted stream's when it stopped after a whole batch).
+            max_windows: cut only the windows of index below this (``None``: all); reading stops there.
+            initial_models: models the first batch starts from, :math:`(M, P)`, as reuse would give them.
 
         Yields:
             :class:`Segmentation` of each window with at least ``min_events`` events; its ``offset`` and
@@ -287,9 +296,14 @@ class CascadedSegmenter(nn.Module):
             ConfigError: ``batch_size`` or ``workers`` is not a positive integer, or ``workers`` exceeds
                 ``batch_size``.
         """
-        for name, value in (("batch_size", batch_size), ("workers", workers)):
-            if isinstance(value, bool) or not isinstance(value, Integral) or value < 1:
-                raise ConfigError(f"{name} must be a positive integer, got {value!r}")
+        for name, value, least in (
+            ("batch_size", batch_size, 1),
+            ("workers", workers, 1),
+            ("first_window", first_window, 0),
+            ("max_windows", 1 if max_windows is None else max_windows, 1),
+        ):
+            if isinstance(value, bool) or not isinstance(value, Integral) or value < least:
+                raise ConfigError(f"{name} must be an integer of at least {least}, got {value!r}")
         if workers > batch_size:
             raise ConfigError(
                 f"workers ({workers}) must not exceed batch_size ({batch_size}): the workers share out "
@@ -309,15 +323,32 @@ class CascadedSegmenter(nn.Module):
             cut = iter_windows(
                 chunks, window_ms=window_ms, stride_ms=stride_ms, events_per_window=events_per_window
             )
-            kept = (window for window in cut if len(window.events) >= windows.min_events)
+            if max_windows is not None:
+                cut = itertools.takewhile(lambda window: window.index < max_windows, cut)
+            kept = (
+                window
+                for window in cut
+                if window.index >= first_window and len(window.events) >= windows.min_events
+            )
             previous = None
+            if initial_models is not None and self.config.level_one.reuse_models:
+                models = np.asarray(_numpy(initial_models), dtype=np.float64)
+                if models.ndim != 2 or models.shape[1] != self.motion.n_params:
+                    raise ModelError(
+                        f"initial_models must be (M, {self.motion.n_params}), got {tuple(models.shape)}"
+                    )
+                previous = self._plausible(models)
             for batch in _batched(kept, batch_size):
                 results = segment([window.events for window in batch], previous)
                 if self.config.level_one.reuse_models:
-                    # A refit that diverged (no motion of this sensor) would only derail the next window.
-                    previous = results[-1].models[self.motion.plausible(results[-1].models)]
+                    previous = self._plausible(results[-1].models)
                 for window, result in zip(batch, results, strict=True):
                     yield replace(result, offset=window.offset, window_index=window.index)
+
+    def _plausible(self, models: np.ndarray) -> np.ndarray:
+        """The models worth reusing: a refit that diverged (no motion of this sensor) would only derail
+        the next window."""
+        return models[self.motion.plausible(models)]
 
     def _segment(self, windows: list, initial_models) -> list[Segmentation]:
         """:meth:`segment_batch` with every window starting from the same models."""

@@ -14,8 +14,8 @@ Python. They start the platform's default way, as torch's DataLoader workers do:
 
 from __future__ import annotations
 
+import multiprocessing
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import torch
@@ -27,6 +27,9 @@ _segmenter = None  # each worker's own copy, set once by _start
 
 def _start(segmenter) -> None:
     global _segmenter
+    from evseg_torch.runs import worker_signals
+
+    worker_signals()
     torch.set_num_threads(1)
     _segmenter = segmenter
 
@@ -45,11 +48,7 @@ class WindowPool:
 
     def __init__(self, segmenter, workers: int) -> None:
         self.workers = workers
-        self._pool = ProcessPoolExecutor(
-            max_workers=workers,
-            initializer=_start,
-            initargs=(segmenter,),
-        )
+        self._pool = multiprocessing.get_context().Pool(workers, initializer=_start, initargs=(segmenter,))
 
     def segment(self, windows: Sequence, initial_models) -> list:
         """Segment ``windows`` (each starting from ``initial_models``), shared out in consecutive parts.
@@ -62,16 +61,24 @@ class WindowPool:
             One :class:`~evseg_torch.pipeline.Segmentation` per window, in order.
         """
         parts = [part for part in np.array_split(np.arange(len(windows)), self.workers) if len(part)]
-        futures = [
-            self._pool.submit(_segment, [windows[index] for index in part], initial_models) for part in parts
+        tasks = [
+            self._pool.apply_async(_segment, ([windows[index] for index in part], initial_models))
+            for part in parts
         ]
-        return [result for future in futures for result in future.result()]
+        return [result for task in tasks for result in task.get()]
 
     def close(self) -> None:
-        self._pool.shutdown(cancel_futures=True)
+        """Let the workers finish and end them."""
+        self._pool.close()
+        self._pool.join()
 
     def __enter__(self) -> WindowPool:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, kind, error, traceback) -> None:
+        if kind is None:
+            self.close()
+        else:
+            # Stopped or failed: end the workers at once rather than wait for their windows.
+            self._pool.terminate()
+            self._pool.join()

@@ -162,11 +162,10 @@ def _text(tmp_path, name, lines):
         (lambda p: _text(p, "far.txt", ["0.0 500 1 1"]), ["--sensor-size", SIZE], "outside the sensor"),
         (lambda p: _text(p, "back.txt", ["0.002 1 1 1", "0.001 1 1 0"]), ["--sensor-size", SIZE], "decrease"),
         (lambda p: _text(p, "empty.txt", ["# no events"]), ["--sensor-size", SIZE], "no events"),
-        (lambda p: _text(p, "nosize.txt", ["0.0 1 1 1"]), [], "--sensor-size"),
         (
             lambda p: _text(p, "ok.txt", ["0.0 1 1 1"]),
             ["--sensor-size", SIZE, "--events-per-window", "0"],
-            "positive",
+            "at least 1",
         ),
         (
             lambda p: _text(p, "ok2.txt", ["0.0 1 1 1"]),

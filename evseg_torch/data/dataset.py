@@ -52,9 +52,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
-from evseg_torch.events import EVENT_DTYPE, CountWindowIndex, TimeWindowIndex, check_sensor_size, to_torch
-from evseg_torch.io import iter_event_chunks, read_sensor_size
+from evseg_torch.errors import ConfigError, ReaderError
+from evseg_torch.events import EVENT_DTYPE, CountWindowIndex, TimeWindowIndex, to_torch
+from evseg_torch.io import iter_event_chunks, resolve_sensor_size
 from evseg_torch.io.guard import existing_file, reading
 from evseg_torch.io.numpy_files import WHAT_NPY, WHAT_NPZ, open_npz
 
@@ -73,8 +73,9 @@ class EventWindowDataset(Dataset):
             ``stride_events`` events: every full window, then one last window of the events left from
             the next start on, if any.
         stride_events: step between count windows' first events; defaults to ``events_per_window``.
-        sensor_size: ``(H, W)`` every event must lie inside; defaults to the file's ``sensor_size``
-            member (``.npz``), else the size the file stores, else the smallest that holds the events.
+        sensor_size: ``(H, W)`` every event must lie inside. The size the file stores wins (a given one
+            must equal it); with neither, the smallest that holds the events: the rule of
+            :func:`~evseg_torch.io.resolve_sensor_size`, which ``evseg segment`` follows too.
         labelled: read each event's label and ignore flag too.
         label_field: the ``.npz`` member or structured ``.npy`` field of integer labels.
         ignore_field: the member or field of the ignore mask; a file without it, or ``None``, ignores
@@ -126,7 +127,7 @@ class EventWindowDataset(Dataset):
         )
         self.path = existing_file(path)
         self.labelled = bool(labelled)
-        size = check_sensor_size(sensor_size) if sensor_size is not None else _stored_sensor_size(self.path)
+        size = resolve_sensor_size(self.path, sensor_size)
         labels = _open_labels(self.path, label_field, ignore_field) if self.labelled else None
         in_place = _canonical_npy(self.path)
         self._directory = None
@@ -380,18 +381,6 @@ def _canonical_npy(path: Path) -> _Rows | None:
     except (OSError, ValueError):
         return None  # the construction pass reports what is wrong with the file
     return _Rows(path, dtype, offset) if dtype == EVENT_DTYPE and len(shape) == 1 else None
-
-
-def _stored_sensor_size(path: Path) -> tuple[int, int] | None:
-    """A labelled ``.npz``'s ``sensor_size`` member, else what the format stores (``None`` if nothing)."""
-    if path.suffix.lower() == ".npz":
-        with reading(path, WHAT_NPZ), open_npz(path) as npz:
-            if "sensor_size" in npz.files:
-                try:
-                    return check_sensor_size(npz["sensor_size"])
-                except EventFormatError as err:
-                    raise ReaderError(f"the sensor_size member is invalid: {err}") from None
-    return read_sensor_size(path)
 
 
 def _geometry(window_ms, stride_ms, events_per_window, stride_events) -> tuple:

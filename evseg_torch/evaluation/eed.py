@@ -206,6 +206,7 @@ def evaluate_sequence(
     reference: str = "box",
     progress: bool = False,
     on_window: Callable[[BoxResult, object], None] | None = None,
+    device: str = "cpu",
 ) -> list[BoxResult]:
     """Run the protocol on a sequence with a :class:`~evseg_torch.pipeline.CascadedSegmenter`.
 
@@ -215,12 +216,13 @@ def evaluate_sequence(
             ``window.min_events`` sets which windows are evaluable.
         window_ms: window length; default ``config.window.window_ms``.
         reference, progress, on_window: as in :func:`evaluate_boxes`.
+        device: torch device of level two.
 
     Returns:
         One :class:`BoxResult` per GT box.
     """
     return evaluate_boxes(
-        CascadedSegmenter(sequence.sensor_size, config),
+        CascadedSegmenter(sequence.sensor_size, config).to(device),
         sequence.events,
         sequence.box_times_s,
         sequence.boxes,

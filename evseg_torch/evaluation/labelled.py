@@ -238,6 +238,7 @@ def evaluate_labelled(
     ignore_field: str | None = "ambiguous",
     method: str = "evseg",
     progress: bool = False,
+    device: str = "cpu",
 ) -> list[LabelledScore]:
     """Segment each labelled file as one window and score it.
 
@@ -251,6 +252,7 @@ def evaluate_labelled(
         label_field, ignore_field: as in :func:`load_labelled`.
         method: the name of the scores' method.
         progress: show a progress bar.
+        device: torch device of level two.
 
     Returns:
         One :class:`LabelledScore` per file, named by the file's stem, with the segmentation's time.
@@ -266,7 +268,7 @@ def evaluate_labelled(
     ]
     scores = []
     for path, events, labels, ignore, size in tqdm(cases, desc="files", disable=not progress):
-        result = CascadedSegmenter(size, config)(events)
+        result = CascadedSegmenter(size, config).to(device)(events)
         scores.append(
             score_events(
                 result.labels,

@@ -6,7 +6,14 @@ reads the ``(H, W)`` a file stores. Every reader returns canonical events (see
 naming the file for a missing, unknown, corrupt or truncated file.
 """
 
-from evseg_torch.io.dispatch import SUPPORTED_SUFFIXES, iter_event_chunks, load_events, read_sensor_size
+from evseg_torch.io.dispatch import (
+    SUPPORTED_SUFFIXES,
+    iter_event_chunks,
+    load_events,
+    read_sensor_size,
+    resolve_sensor_size,
+    scan_sensor_size,
+)
 from evseg_torch.io.eed import load_eed_boxes, load_frame_list
 from evseg_torch.io.evimo import EvimoSequence, load_evimo, save_evimo
 
@@ -19,5 +26,7 @@ __all__ = [
     "load_evimo",
     "load_frame_list",
     "read_sensor_size",
+    "resolve_sensor_size",
     "save_evimo",
+    "scan_sensor_size",
 ]

@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
-from evseg_torch.events import as_events, check_sensor_size
+from evseg_torch.events import as_events, check_sensor_size, infer_sensor_size
 from evseg_torch.io import aedat2, aedat4, hdf5, numpy_files, text
 from evseg_torch.io.guard import existing_file, reading
 
@@ -149,6 +149,38 @@ def read_sensor_size(path) -> tuple[int, int] | None:
         return check_sensor_size(size)
     except EventFormatError as err:
         raise ReaderError(f"{path}: the stored sensor size is invalid: {err}") from None
+
+
+def resolve_sensor_size(path, given: tuple[int, int] | None = None) -> tuple[int, int] | None:
+    """The sensor size to read ``path`` with, by the one rule of evseg_torch.
+
+    The size the file stores wins; a size given as well must equal it. When the file stores none, the
+    given size is used; with neither, ``None``: the caller takes the smallest size that holds the events
+    (``(max y + 1, max x + 1)``), as :func:`scan_sensor_size` finds it.
+
+    Raises:
+        EventFormatError: ``given`` is not a valid size, or differs from the stored one.
+        ReaderError: as :func:`read_sensor_size`.
+    """
+    if given is not None:
+        given = check_sensor_size(given)
+    stored = read_sensor_size(path)
+    if given is not None and stored is not None and given != stored:
+        raise EventFormatError(
+            f"{path}: the file stores a {stored[0]}x{stored[1]} sensor but {given[0]}x{given[1]} was given; "
+            "leave the size out to use the stored one"
+        )
+    return stored or given
+
+
+def scan_sensor_size(path, chunk_size: int = 1_000_000) -> tuple[int, int]:
+    """The smallest sensor size ``(max y + 1, max x + 1)`` that holds the events of ``path`` (one pass).
+
+    Raises:
+        ReaderError, EventFormatError: as :func:`iter_event_chunks`.
+    """
+    sizes = [infer_sensor_size(chunk) for chunk in iter_event_chunks(path, chunk_size)]
+    return tuple(int(v) for v in np.max(sizes, axis=0))
 
 
 def _resolve(path) -> tuple[Path, _Format]:

@@ -97,15 +97,18 @@ def chunks_npz(path: Path, chunk_size: int) -> Iterator[np.ndarray]:
 
 
 def sensor_size_npz(path: Path) -> tuple[int, int] | None:
-    """``(H, W)`` from ``height``/``width`` or an EV-IMO ``mask``'s shape, else ``None``."""
+    """``(H, W)`` from a ``sensor_size`` member, ``height``/``width`` or an EV-IMO ``mask``'s shape, else
+    ``None``; the caller checks the values."""
     with open_npz(path) as npz:
+        if "sensor_size" in npz.files:
+            return tuple(np.asarray(npz["sensor_size"]).tolist())
         if "width" in npz.files and "height" in npz.files:
             height, width = np.asarray(npz["height"]), np.asarray(npz["width"])
             if height.size != 1 or width.size != 1:
                 raise ReaderError(
                     f"height and width must be single numbers, got shapes {height.shape}, {width.shape}"
                 )
-            return int(height.item()), int(width.item())
+            return height.item(), width.item()
         if "mask" in npz.files:
             shape = member_shape(npz, "mask")
             if len(shape) == 3:
