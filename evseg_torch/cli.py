@@ -51,7 +51,7 @@ def _parser() -> argparse.ArgumentParser:
         "segment",
         help="segment recordings window by window",
         description="Segment each INPUT window by window; writes labels.npz, models.jsonl, summary.json and "
-        "config.yaml (and Fig. 1 PNGs with --save-images) into OUT/<input name>/.",
+        "config.yaml (and Fig. 1 PNGs with --save-images, video.mp4 with --video) into OUT/<input name>/.",
     )
     segment.add_argument(
         "inputs", nargs="+", metavar="INPUT", help="event files (.txt .npy .npz .h5 .aedat4 ...)"
@@ -70,6 +70,12 @@ def _parser() -> argparse.ArgumentParser:
         "--stride-ms", type=float, help="step between windows in ms (default: window length)"
     )
     segment.add_argument("--save-images", action="store_true", help="write one Fig. 1 PNG per window")
+    segment.add_argument(
+        "--video",
+        action="store_true",
+        help="write video.mp4 beside the results: one frame per window, its events coloured by cluster, raw "
+        "and compensated (needs the video extra)",
+    )
     segment.add_argument(
         "--workers",
         type=int,
@@ -261,6 +267,7 @@ def _segment(args) -> int:
         "stride_ms": args.stride_ms,
         "events_per_window": args.events_per_window,
         "save_images": args.save_images,
+        "video": args.video,
         "overwrite": args.overwrite,
         "chunk_size": args.chunk_size,
         "batch_size": args.batch_size,
@@ -300,6 +307,7 @@ def segment_file(
     stride_ms=None,
     events_per_window=None,
     save_images=False,
+    video=False,
     overwrite=False,
     chunk_size=1_000_000,
     batch_size=1,
@@ -322,7 +330,7 @@ def segment_file(
     segmenter = CascadedSegmenter(sensor_size, config)
     counted = _CountingChunks(iter_event_chunks(path, chunk_size, sensor_size=sensor_size))
     start = time.perf_counter()
-    with SegmentationWriter(out, config, save_images=save_images, overwrite=overwrite) as writer:
+    with SegmentationWriter(out, config, save_images=save_images, overwrite=overwrite, video=video) as writer:
         results = segmenter.stream(counted, batch_size=batch_size, workers=workers)
         for result in tqdm(results, desc=path.name, unit=" windows", disable=not progress):
             writer.add(result)
@@ -359,9 +367,9 @@ def _single_thread() -> None:
 
 def _demo(args) -> int:
     from evseg_torch.metrics import labelling_accuracy, match_clusters, per_object_iou
+    from evseg_torch.panels import render_fig1, write_png
     from evseg_torch.pipeline import CascadedSegmenter
     from evseg_torch.synthetic import make_scene
-    from evseg_torch.viz import fig1_figure, save_figure
 
     args.out.mkdir(parents=True, exist_ok=True)
     scene = make_scene(sensor_size=(180, 240), duration=0.03, n_objects=2, rng=args.seed)
@@ -370,10 +378,11 @@ def _demo(args) -> int:
     ious = per_object_iou(result.labels, scene.labels)
     metrics = {
         "events": len(scene.events),
-        "clusters": f"{result.n_clusters} (true {len(scene.motions)})",
+        "clusters": result.n_clusters,
+        "true_clusters": len(scene.motions),
         "accuracy": labelling_accuracy(result.labels, scene.labels),
-        "mean IMO IoU": float(np.mean(list(ious.values()))),
-        "time": f"{result.timings_ms['total']:.0f} ms",
+        "mean_imo_iou": float(np.mean(list(ious.values()))),
+        "time_ms": result.timings_ms["total"],
     }
     # Draw each true layer in the colour of the cluster matched to it, so the two panels compare at a glance.
     layer_to_cluster = {
@@ -382,10 +391,19 @@ def _demo(args) -> int:
     spare = iter(range(result.n_clusters, result.n_clusters + len(scene.motions)))
     colour_of = {layer: layer_to_cluster.get(layer, next(spare)) for layer in range(len(scene.motions))}
     shown = np.array([colour_of.get(int(v), -1) for v in range(-1, len(scene.motions))])[scene.labels + 1]
-    figure = fig1_figure(
-        result, title=f"synthetic scene, seed {args.seed}", metrics=metrics, ground_truth=shown
+    shown_metrics = {
+        "clusters": f"{result.n_clusters} (true {len(scene.motions)})",
+        "accuracy": metrics["accuracy"],
+        "mean IMO IoU": metrics["mean_imo_iou"],
+        "time": f"{metrics['time_ms']:.0f} ms",
+    }
+    image = render_fig1(
+        result,
+        title=f"evseg demo: synthetic scene, seed {args.seed}",
+        metrics=shown_metrics,
+        ground_truth=shown,
     )
-    path = save_figure(figure, args.out / "demo.png")
+    path = write_png(image, args.out / "demo.png")
     (args.out / "metrics.json").write_text(json.dumps({**metrics, "timings_ms": result.timings_ms}, indent=2))
     log.info("wrote %s", path)
     for key, value in metrics.items():

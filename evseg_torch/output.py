@@ -1,16 +1,9 @@
 """Writers of segmentation results, streaming so memory stays bounded by one window.
 
-Layout of one recording's output folder:
-
-* ``labels.npz``: ``labels`` (int64, the cluster of each event within its window, ``-1`` for events in
-  no segmented window) and ``window`` (int64, the window of each event, ``-1`` likewise), both in input
-  order. With overlapping windows an event keeps the label of the first window that holds it. Cluster
-  numbers are per window: cluster ``k`` of window ``w`` is row ``k`` of that window's models.
-* ``models.jsonl``: one JSON object per segmented window: index, first event, event count, ``t_ref``
-  (seconds), motion model, models (rows of parameters), level-one model count and timings in ms.
-* ``summary.json``: totals, events per second, windows, and per-stage timing statistics.
-* ``config.yaml``: the resolved configuration.
-* ``images/NNNNNN.png`` (optional): the paper's Fig. 1 panels for each window.
+The files of a result folder, their fields, dtypes, units and version (:data:`SCHEMA_VERSION`) are
+documented in the README's "Output files" section, which a test compares with what is written here;
+:func:`evseg_torch.results.load_results` reads a folder back. Figures and video frames come from
+:func:`evseg_torch.panels.render_fig1`.
 """
 
 from __future__ import annotations
@@ -25,6 +18,10 @@ import numpy as np
 
 from evseg_torch.config import SegmenterConfig, dump_config
 from evseg_torch.errors import EvsegError
+from evseg_torch.motion import MOTION_MODELS
+
+# Raised whenever a field is renamed, removed or changes meaning; readers refuse newer versions.
+SCHEMA_VERSION = 1
 
 
 class OutputExistsError(EvsegError, FileExistsError):
@@ -38,12 +35,18 @@ class SegmentationWriter:
     Args:
         folder: output folder of this recording; created if missing.
         config: the configuration used, copied as ``config.yaml``.
-        save_images: also write one Fig. 1 PNG per window.
+        save_images: also write one Fig. 1 PNG per window (``images/NNNNNN.png``).
+        video: also write ``video.mp4``, one frame per window (needs the ``video`` extra).
         overwrite: replace existing results; otherwise an existing non-empty folder is an error.
     """
 
     def __init__(
-        self, folder: str | Path, config: SegmenterConfig, save_images: bool = False, overwrite: bool = False
+        self,
+        folder: str | Path,
+        config: SegmenterConfig,
+        save_images: bool = False,
+        overwrite: bool = False,
+        video: bool = False,
     ):
         self.folder = Path(folder)
         if self.folder.exists() and any(self.folder.iterdir()):
@@ -64,6 +67,11 @@ class SegmentationWriter:
         self.written = 0
         self.timings: dict[str, list[float]] = {}
         self.n_windows = 0
+        self._video = None
+        if video:
+            from evseg_torch.video import VideoWriter
+
+            self._video = VideoWriter(self.folder / "video.mp4")
 
     def __enter__(self) -> SegmentationWriter:
         return self
@@ -76,6 +84,8 @@ class SegmentationWriter:
         """Close everything and remove the partial results, e.g. when the input turns out to be bad."""
         for handle in (self._labels, self._windows, self._models):
             handle.close()
+        if self._video is not None:
+            self._video.close()
         self._scratch.cleanup()
         shutil.rmtree(self.folder, ignore_errors=True)
 
@@ -87,25 +97,36 @@ class SegmentationWriter:
             self._write_labels(np.full(offset - self.written, -1), np.full(offset - self.written, -1))
         fresh = labels[max(self.written - offset, 0) :]
         self._write_labels(fresh, np.full(len(fresh), index))
+        model = MOTION_MODELS[segmentation.motion_model]
+        times = segmentation.events["t"]
         record = {
+            "schema_version": SCHEMA_VERSION,
             "window": index,
             "first_event": int(offset),
             "n_events": len(labels),
-            "t_ref": segmentation.t_ref,
+            "t_first_us": int(times[0]) if len(times) else None,
+            "t_last_us": int(times[-1]) if len(times) else None,
+            "t_ref": float(segmentation.t_ref),
             "motion_model": segmentation.motion_model,
-            "models": segmentation.models.tolist(),
+            "parameters": list(model.param_names),
+            "units": list(model.param_units),
+            "models": np.asarray(segmentation.models, dtype=np.float64).tolist(),
             "n_level_one_models": len(segmentation.level_one_models),
-            "timings_ms": segmentation.timings_ms,
+            "timings_ms": {stage: float(v) for stage, v in segmentation.timings_ms.items()},
         }
         self._models.write(json.dumps(record) + "\n")
         for stage, value in segmentation.timings_ms.items():
             self.timings.setdefault(stage, []).append(value)
         self.n_windows += 1
-        if self.save_images:
-            from evseg_torch.viz import fig1_figure, save_figure
+        if self.save_images or self._video is not None:
+            from evseg_torch.panels import VIDEO_PANELS, render_fig1, write_png
 
-            figure = fig1_figure(segmentation, title=f"window {index}")
-            save_figure(figure, self.folder / "images" / f"{index:06d}.png")
+            if self.save_images:
+                image = render_fig1(segmentation, title=f"window {index}")
+                write_png(image, self.folder / "images" / f"{index:06d}.png")
+            if self._video is not None:
+                frame = render_fig1(segmentation, title=f"window {index}", panels=VIDEO_PANELS, crop=False)
+                self._video.write(frame)
 
     def close(self, n_events: int, wall_s: float, extra: dict | None = None) -> dict:
         """Finish ``labels.npz`` and write ``summary.json``; returns the summary."""
@@ -114,6 +135,8 @@ class SegmentationWriter:
         self._labels.close()
         self._windows.close()
         self._models.close()
+        if self._video is not None:
+            self._video.close()
         with zipfile.ZipFile(
             self.folder / "labels.npz", "w", compression=zipfile.ZIP_STORED, allowZip64=True
         ) as archive:
@@ -121,10 +144,12 @@ class SegmentationWriter:
                 _stream_npy(archive, name, Path(self._scratch.name) / f"{name}.bin", self.written)
         self._scratch.cleanup()
         summary = {
+            "schema_version": SCHEMA_VERSION,
             "events": int(n_events),
             "windows": self.n_windows,
-            "wall_s": wall_s,
+            "wall_s": float(wall_s),
             "events_per_s": n_events / wall_s if wall_s > 0 else None,
+            "video_frames": self._video.n_frames if self._video is not None else None,
             "timings_ms": {
                 stage: {"median": float(np.median(v)), "mean": float(np.mean(v)), "max": float(np.max(v))}
                 for stage, v in self.timings.items()
