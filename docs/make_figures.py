@@ -1,7 +1,7 @@
 """Regenerate the README's figures from the commands printed beside them (``make docs``).
 
-Every figure in README.md is an image line ``![...](docs/NAME.png)`` followed, within the next three
-lines, by the line ``Made by `evseg ...` `` that names the command writing it. This script finds those
+Every figure in README.md is an image line ``![...](docs/NAME.png)`` followed, within the next eight
+lines (its caption), by the line ``Made by `evseg ...` `` that names the command writing it. This script finds those
 pairs, runs each distinct command once from the repository root (``evseg`` is this checkout's
 ``python -m evseg_torch.cli``) and checks that every figure was written anew, so the README's figures
 and commands cannot drift apart. ``--only NAME ...`` regenerates the figures whose path contains NAME,
@@ -29,7 +29,7 @@ def figure_commands(readme: str) -> dict[str, str]:
     commands = {}
     for number, line in enumerate(lines):
         for path in IMAGE.findall(line):
-            found = [COMMAND.search(after) for after in lines[number + 1 : number + 4]]
+            found = [COMMAND.search(after) for after in lines[number + 1 : number + 9]]
             made_by = next((match.group(1) for match in found if match), None)
             if made_by is None:
                 raise SystemExit(f"README.md line {number + 1}: {path} has no 'Made by `evseg ...`' line")
