@@ -1,11 +1,11 @@
 """Regenerate the README's figures from the commands printed beside them (``make docs``).
 
-Every figure in README.md is an image line ``![...](docs/NAME.png)`` followed, within the next eight
-lines (its caption), by the line ``Made by `evseg ...` `` that names the command writing it. This script finds those
-pairs, runs each distinct command once from the repository root (``evseg`` is this checkout's
-``python -m evseg_torch.cli``) and checks that every figure was written anew, so the README's figures
-and commands cannot drift apart. ``--only NAME ...`` regenerates the figures whose path contains NAME,
-e.g. ``--only demo`` (the EED figures take minutes).
+Every figure in README.md is an image line ``![...](docs/NAME.png)`` followed, within the next
+eight lines (its caption), by the line ``Made by `evseg ...` `` that names the command writing it.
+This script finds those pairs, runs each distinct command once from the repository root (``evseg``
+is this checkout's ``python -m evseg_torch.cli``) and checks that every figure was written anew, so
+the README's figures and commands cannot drift apart. ``--only NAME ...`` regenerates the figures
+whose path contains NAME, e.g. ``--only demo`` (the EED figures take a minute).
 """
 
 from __future__ import annotations

@@ -5,7 +5,15 @@ one, io, metrics) import without it.
 """
 
 from evseg_torch.config import SegmenterConfig, load_config
-from evseg_torch.errors import ConfigError, EventFormatError, EvsegError, ModelError, ReaderError, ShapeError
+from evseg_torch.errors import (
+    ConfigError,
+    EventFormatError,
+    EvsegError,
+    ModelError,
+    ReaderError,
+    ResultsError,
+    ShapeError,
+)
 from evseg_torch.events import EVENT_DTYPE, EventBatch, as_events, batch_windows, to_torch
 from evseg_torch.io import load_events
 from evseg_torch.results import SegmentationResults, load_results
@@ -32,6 +40,7 @@ __all__ = [
     "EvsegError",
     "ModelError",
     "ReaderError",
+    "ResultsError",
     "Segmentation",
     "SegmentationResults",
     "SegmenterConfig",

@@ -16,12 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from evseg_torch.config import SegmenterConfig, load_config
-from evseg_torch.errors import EvsegError
+from evseg_torch.errors import ResultsError
 from evseg_torch.output import SCHEMA_VERSION
-
-
-class ResultsError(EvsegError, ValueError):
-    """A folder is not a readable evseg result."""
 
 
 @dataclass(frozen=True)

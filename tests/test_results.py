@@ -10,8 +10,8 @@ import pytest
 from evseg_torch import load_results
 from evseg_torch.cli import main
 from evseg_torch.config import load_config
+from evseg_torch.errors import ResultsError
 from evseg_torch.motion import MOTION_MODELS
-from evseg_torch.results import ResultsError
 from evseg_torch.viz import PALETTE
 
 README = Path(__file__).resolve().parents[1] / "README.md"
