@@ -27,7 +27,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py
 
-# The README's figures, from the commands printed beside them (the EED ones take minutes).
+# The README's figures, from the commands printed under them.
 docs: $(STAMP)
 	$(PY) docs/make_figures.py
 

@@ -48,6 +48,10 @@ class SegmentationWriter:
         overwrite: bool = False,
         video: bool = False,
     ):
+        if video:  # before anything is written: a missing extra leaves no partial folder
+            from evseg_torch.video import require_av
+
+            require_av()
         self.folder = Path(folder)
         if self.folder.exists() and any(self.folder.iterdir()):
             if not overwrite:

@@ -18,7 +18,8 @@ from evseg_torch.errors import EvsegError, ShapeError
 FRAMES_PER_SECOND = 10
 
 
-def _av():
+def require_av():
+    """PyAV's module, or a one-line error naming the extra to install."""
     try:
         import av
     except ImportError:
@@ -40,7 +41,7 @@ class VideoWriter:
         self.path = Path(path)
         self.fps = fps
         self.n_frames = 0
-        self._container = _av().open(str(self.path), mode="w")
+        self._container = require_av().open(str(self.path), mode="w")
         self._stream = None
 
     def write(self, frame: np.ndarray) -> None:
@@ -60,7 +61,7 @@ class VideoWriter:
             )
         padded = np.full((height, width, 3), 255, dtype=np.uint8)
         padded[: frame.shape[0], : frame.shape[1]] = frame
-        av_frame = _av().VideoFrame.from_ndarray(padded, format="rgb24")
+        av_frame = require_av().VideoFrame.from_ndarray(padded, format="rgb24")
         for packet in self._stream.encode(av_frame):
             self._container.mux(packet)
         self.n_frames += 1
@@ -78,5 +79,5 @@ class VideoWriter:
 
 def read_frames(path: str | Path) -> list[np.ndarray]:
     """Decode every frame of a video as uint8 :math:`(H, W, 3)` RGB (for checks and notebooks)."""
-    with _av().open(str(path)) as container:
+    with require_av().open(str(path)) as container:
         return [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]

@@ -2,6 +2,7 @@
 
 import json
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -133,3 +134,17 @@ def test_readme_loading_example_runs(result_folder, tmp_path, monkeypatch, capsy
     monkeypatch.chdir(tmp_path)
     exec(compile(example, "README.md", "exec"), {})
     assert "affine4" in capsys.readouterr().out
+
+
+def test_video_without_pyav_is_one_line_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "av", None)  # as if the video extra were not installed
+    events = tmp_path / "events.txt"
+    events.write_text("0.0 1 1 1\n0.001 2 2 0\n")
+    out = tmp_path / "out"
+    assert (
+        main(["--quiet", "segment", str(events), "--sensor-size", "90x120", "--out", str(out), "--video"])
+        == 2
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "evseg-torch[video]" in err[0]
+    assert not (out / "events").exists()
