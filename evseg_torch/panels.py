@@ -1,9 +1,9 @@
 """The paper's Fig. 1 panels of one window as one RGB image, drawn with NumPy and OpenCV.
 
 One renderer serves the demo figure, the per-window PNGs of ``evseg segment --save-images`` and the
-frames of ``--video``. It avoids matplotlib on purpose: a matplotlib figure per window took about
-seven times as long as segmenting a sparse recording, while NumPy images, OpenCV lines and text and
-OpenCV's PNG encoder take a few milliseconds (README, "Output files").
+frames of ``--video``. It avoids matplotlib on purpose: a matplotlib figure per window made a sparse
+recording's run 6.6-8.7 times as long, while NumPy images, OpenCV lines and text and OpenCV's PNG
+encoder take a few milliseconds a window (README, "Output files").
 
 Design, in the order the image is built:
 
