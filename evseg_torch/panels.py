@@ -78,7 +78,7 @@ def render_fig1(
         uint8 :math:`(H_{fig}, W_{fig}, 3)` RGB.
 
     Raises:
-        ShapeError: ``ids`` or ``ground_truth`` do not match the segmentation.
+        ShapeError: ``ids`` or ``ground_truth`` do not match the segmentation, or a panel name is unknown.
     """
     height, width = segmentation.sensor_size
     events = segmentation.events
