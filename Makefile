@@ -6,14 +6,14 @@ STAMP := $(VENV)/.installed
 # Idle OpenMP threads sleep instead of spinning: on a shared 2-core machine spinning threads slow torch 5-50x.
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: install demo test bench lint clean
+.PHONY: install demo test bench lint docs clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	# The CPU wheel these machines hold; a bare `torch` would pull a multi-GB CUDA build.
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e ".[io,viz,dev]"
+	$(PY) -m pip install -q -e ".[io,viz,video,dev]"
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -26,6 +26,10 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py
+
+# The README's figures, from the commands printed under them.
+docs: $(STAMP)
+	$(PY) docs/make_figures.py
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -5,9 +5,18 @@ one, io, metrics) import without it.
 """
 
 from evseg_torch.config import SegmenterConfig, load_config
-from evseg_torch.errors import ConfigError, EventFormatError, EvsegError, ModelError, ReaderError, ShapeError
+from evseg_torch.errors import (
+    ConfigError,
+    EventFormatError,
+    EvsegError,
+    ModelError,
+    ReaderError,
+    ResultsError,
+    ShapeError,
+)
 from evseg_torch.events import EVENT_DTYPE, EventBatch, as_events, batch_windows, to_torch
 from evseg_torch.io import load_events
+from evseg_torch.results import SegmentationResults, load_results
 
 __version__ = "0.1.0"
 
@@ -31,7 +40,9 @@ __all__ = [
     "EvsegError",
     "ModelError",
     "ReaderError",
+    "ResultsError",
     "Segmentation",
+    "SegmentationResults",
     "SegmenterConfig",
     "ShapeError",
     "__version__",
@@ -39,5 +50,6 @@ __all__ = [
     "batch_windows",
     "load_config",
     "load_events",
+    "load_results",
     "to_torch",
 ]

@@ -68,7 +68,8 @@ def _parser() -> argparse.ArgumentParser:
         parents=[common],
         help="segment recordings window by window",
         description="Segment each INPUT window by window into OUT/<name>/: labels.npz, models.jsonl, "
-        "summary.json and config.yaml (and one figure per window in images/ with --save-images); see the "
+        "summary.json and config.yaml (one figure per window in images/ with --save-images, video.mp4 with "
+        "--video); see the "
         "README's Output section. <name> is the input's stem; inputs whose stems collide are named by their "
         "parent folders too (a/x/events.txt and b/y/events.txt give x-events and y-events). Results are "
         "written into OUT/<name>/.partial/ with a checkpoint after every batch of windows and appear only "
@@ -101,6 +102,12 @@ def _parser() -> argparse.ArgumentParser:
         "--max-windows", type=int, metavar="N", help="segment at most the first N windows (of the range)"
     )
     segment.add_argument("--save-images", action="store_true", help="write one figure per window")
+    segment.add_argument(
+        "--video",
+        action="store_true",
+        help="write video.mp4 beside the results: one frame per window, its events coloured by cluster, raw "
+        "and compensated (needs the video extra)",
+    )
     segment.add_argument(
         "--workers",
         type=int,
@@ -349,6 +356,7 @@ def _segment(args) -> int:
                 batch_size=args.batch_size,
                 workers=workers_per_file,
                 save_images=args.save_images,
+                video=args.video,
                 overwrite=args.overwrite,
                 resume=args.resume,
                 chunk_size=args.chunk_size,
@@ -433,9 +441,9 @@ def _set_threads(threads: int) -> None:
 
 def _demo(args) -> int:
     from evseg_torch.metrics import labelling_accuracy, match_clusters, per_object_iou
+    from evseg_torch.panels import render_fig1, write_png
     from evseg_torch.pipeline import CascadedSegmenter
     from evseg_torch.synthetic import make_scene
-    from evseg_torch.viz import fig1_figure, save_figure
 
     args.out.mkdir(parents=True, exist_ok=True)
     scene = make_scene(sensor_size=(180, 240), duration=0.03, n_objects=2, rng=args.seed)
@@ -444,10 +452,11 @@ def _demo(args) -> int:
     ious = per_object_iou(result.labels, scene.labels)
     metrics = {
         "events": len(scene.events),
-        "clusters": f"{result.n_clusters} (true {len(scene.motions)})",
+        "clusters": result.n_clusters,
+        "true_clusters": len(scene.motions),
         "accuracy": labelling_accuracy(result.labels, scene.labels),
-        "mean IMO IoU": float(np.mean(list(ious.values()))),
-        "time": f"{result.timings_ms['total']:.0f} ms",
+        "mean_imo_iou": float(np.mean(list(ious.values()))),
+        "time_ms": result.timings_ms["total"],
     }
     # Draw each true layer in the colour of the cluster matched to it, so the two panels compare at a glance.
     layer_to_cluster = {
@@ -456,10 +465,19 @@ def _demo(args) -> int:
     spare = iter(range(result.n_clusters, result.n_clusters + len(scene.motions)))
     colour_of = {layer: layer_to_cluster.get(layer, next(spare)) for layer in range(len(scene.motions))}
     shown = np.array([colour_of.get(int(v), -1) for v in range(-1, len(scene.motions))])[scene.labels + 1]
-    figure = fig1_figure(
-        result, title=f"synthetic scene, seed {args.seed}", metrics=metrics, ground_truth=shown
+    shown_metrics = {
+        "clusters": f"{result.n_clusters} (true {len(scene.motions)})",
+        "accuracy": metrics["accuracy"],
+        "mean IMO IoU": metrics["mean_imo_iou"],
+        "time": f"{metrics['time_ms']:.0f} ms",
+    }
+    image = render_fig1(
+        result,
+        title=f"evseg demo: synthetic scene, seed {args.seed}",
+        metrics=shown_metrics,
+        ground_truth=shown,
     )
-    path = save_figure(figure, args.out / "demo.png")
+    path = write_png(image, args.out / "demo.png")
     (args.out / "metrics.json").write_text(json.dumps({**metrics, "timings_ms": result.timings_ms}, indent=2))
     log.info("wrote %s", path)
     for key, value in metrics.items():

@@ -27,3 +27,7 @@ class ModelError(EvsegError, ValueError):
 
 class ShapeError(EvsegError, ValueError):
     """A tensor or array argument has the wrong shape."""
+
+
+class ResultsError(EvsegError, ValueError):
+    """A folder is not a readable ``evseg segment`` result (missing, unfinished, newer schema, corrupt)."""

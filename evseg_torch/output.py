@@ -1,17 +1,19 @@
 """Writers of segmentation results: streaming, resumable, and published only when complete.
 
-One recording's output folder holds, once its run has finished, ``labels.npz``, ``models.jsonl``,
-``summary.json``, ``config.yaml`` and, with figures, ``images/`` (the README's "Output" section describes
-every file and field). While the run goes on, everything is written into the folder's hidden ``.partial/``
-with a checkpoint (``state.json``) after every batch of windows; nothing partial is ever presented as a
-result. When the run ends, each finished file is moved into the folder by a rename, ``summary.json``
-last, so a folder with a ``summary.json`` and no ``.partial/`` is complete.
+The files of a result folder, their fields, dtypes, units and version (:data:`SCHEMA_VERSION`) are
+documented in the README's "Output files" section, which a test compares with what is written here;
+:func:`evseg_torch.results.load_results` reads a folder back. Figures and video frames come from
+:func:`evseg_torch.panels.render_fig1`.
 
-A stopped run (killed, interrupted, out of disk) keeps its ``.partial/``; :class:`SegmentationWriter` with
-``resume=True`` truncates the files to the last checkpoint and carries on from there, provided the run's
-identity (input file, configuration, options that change results) is the same. The checkpoint records
-the number of windows written, the events labelled so far and the size of ``models.jsonl``; the last
-window's models, which the next window starts from, are read back from ``models.jsonl`` itself.
+While a run goes on, everything is written into the folder's hidden ``.partial/`` with a checkpoint
+(``state.json``) after every batch of windows; nothing partial is ever presented as a result. When the
+run ends, each finished file is moved into the folder by a rename, ``summary.json`` last, so a folder
+with a ``summary.json`` and no ``.partial/`` is complete. A stopped run (killed, interrupted, out of disk)
+keeps its ``.partial/``; :class:`SegmentationWriter` with ``resume=True`` truncates the files to the last
+checkpoint and carries on from there, provided the run's identity (input file, configuration, options
+that change results) is the same; the last window's models, which the next window starts from, are read
+back from ``models.jsonl``. Video frames wait as PNGs in ``.partial/frames/`` and are encoded at the end,
+so that a resumed run's video holds every window too.
 """
 
 from __future__ import annotations
@@ -27,10 +29,14 @@ import numpy as np
 
 from evseg_torch.config import SegmenterConfig, dump_config
 from evseg_torch.errors import EvsegError
+from evseg_torch.motion import MOTION_MODELS
 
+# Raised whenever a field is renamed, removed or changes meaning; readers refuse newer versions.
+SCHEMA_VERSION = 1
 PARTIAL = ".partial"
 _STATE = "state.json"
-_FINISHED = ("config.yaml", "models.jsonl", "labels.npz", "images", "summary.json")  # in publishing order
+# In publishing order.
+_FINISHED = ("config.yaml", "models.jsonl", "labels.npz", "images", "video.mp4", "summary.json")
 
 
 class OutputExistsError(EvsegError, FileExistsError):
@@ -78,6 +84,7 @@ class SegmentationWriter:
         run: what identifies the run (input, options that change results), JSON-serialisable; a resumed
             run must match it, and a folder holding another input's results is never replaced.
         save_images: also write one figure per window into ``images/``.
+        video: also write ``video.mp4``, one frame per window (needs the ``video`` extra).
         overwrite: replace this input's existing results, finished or stopped.
         resume: continue a stopped run from its last checkpoint (:attr:`resume_point`); for a finished
             run nothing is written and :attr:`summary` holds its summary.
@@ -96,7 +103,13 @@ class SegmentationWriter:
         save_images: bool = False,
         overwrite: bool = False,
         resume: bool = False,
+        video: bool = False,
     ):
+        if video:  # before anything is written: a missing extra leaves no partial folder
+            from evseg_torch.video import require_av
+
+            require_av()
+        self.video = video
         self.folder = Path(folder)
         self.partial = self.folder / PARTIAL
         self.run = _plain(run or {})
@@ -140,32 +153,49 @@ class SegmentationWriter:
         self._close_files()
         shutil.rmtree(self.folder, ignore_errors=True)
 
-    def add(self, segmentation) -> None:
-        """Record one window's :class:`~evseg_torch.pipeline.Segmentation` (placed by its ``offset``)."""
+    def add(self, segmentation, first_event: int = 0) -> None:
+        """Record one window's :class:`~evseg_torch.pipeline.Segmentation`.
+
+        Args:
+            segmentation: the window; its ``offset`` is its first event's index in the input.
+            first_event: index in the input of the first event the labels cover (the same every call).
+        """
         index, offset = segmentation.window_index, segmentation.offset
         labels = np.asarray(segmentation.labels, dtype=np.int64)
-        if offset > self.written:
-            self._write_labels(np.full(offset - self.written, -1), np.full(offset - self.written, -1))
-        fresh = labels[max(self.written - offset, 0) :]
+        position = offset - first_event
+        if position > self.written:
+            self._write_labels(np.full(position - self.written, -1), np.full(position - self.written, -1))
+        fresh = labels[max(self.written - position, 0) :]
         self._write_labels(fresh, np.full(len(fresh), index))
+        model = MOTION_MODELS[segmentation.motion_model]
+        times = segmentation.events["t"]
         record = {
+            "schema_version": SCHEMA_VERSION,
             "window": index,
             "first_event": int(offset),
             "n_events": len(labels),
-            "t_ref": segmentation.t_ref,
+            "t_first_us": int(times[0]) if len(times) else None,
+            "t_last_us": int(times[-1]) if len(times) else None,
+            "t_ref": float(segmentation.t_ref),
             "motion_model": segmentation.motion_model,
-            "models": segmentation.models.tolist(),
+            "parameters": list(model.param_names),
+            "units": list(model.param_units),
+            "models": np.asarray(segmentation.models, dtype=np.float64).tolist(),
             "n_level_one_models": len(segmentation.level_one_models),
-            "timings_ms": segmentation.timings_ms,
+            "timings_ms": {stage: float(v) for stage, v in segmentation.timings_ms.items()},
         }
         self._models.write(json.dumps(record) + "\n")
         self._count(record)
         self._next_window = index + 1
-        if self.save_images:
-            from evseg_torch.viz import fig1_figure, save_figure
+        if self.save_images or self.video:
+            from evseg_torch.panels import VIDEO_PANELS, render_fig1, write_png
 
-            figure = fig1_figure(segmentation, title=f"window {index}")
-            save_figure(figure, self.partial / "images" / f"{index:06d}.png")
+            if self.save_images:
+                image = render_fig1(segmentation, title=f"window {index}")
+                write_png(image, self.partial / "images" / f"{index:06d}.png")
+            if self.video:
+                frame = render_fig1(segmentation, title=f"window {index}", panels=VIDEO_PANELS, crop=False)
+                write_png(frame, self.partial / "frames" / f"{index:06d}.png")
 
     def checkpoint(self, wall_s: float = 0.0) -> None:
         """Record that everything added so far is complete: a stopped run resumes from here.
@@ -196,11 +226,14 @@ class SegmentationWriter:
             for name in ("labels", "window"):
                 _stream_npy(archive, name, self.partial / f"{name}.bin", self.written)
         self.wall_s += wall_s
+        frames = self._encode_video() if self.video else None
         summary = {
+            "schema_version": SCHEMA_VERSION,
             "events": int(self.written),
             "windows": self.n_windows,
             "wall_s": self.wall_s,
             "events_per_s": self.written / self.wall_s if self.wall_s > 0 else None,
+            "video_frames": frames,
             "timings_ms": {
                 stage: {"median": float(np.median(v)), "mean": float(np.mean(v)), "max": float(np.max(v))}
                 for stage, v in self.timings.items()
@@ -213,13 +246,29 @@ class SegmentationWriter:
         publish(self.folder)
         return summary
 
+    def _encode_video(self) -> int:
+        """Encode the waiting frames, in window order, into ``video.mp4``; returns the frame count."""
+        import cv2
+
+        from evseg_torch.video import VideoWriter
+
+        video = VideoWriter(self.partial / "video.mp4")
+        try:
+            for path in sorted((self.partial / "frames").glob("*.png")):
+                video.write(cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB))
+        finally:
+            video.close()
+        shutil.rmtree(self.partial / "frames")
+        return video.n_frames
+
     def _open(self, binary: str, text: str) -> None:
         self._labels = open(self.partial / "labels.bin", binary)
         self._windows = open(self.partial / "window.bin", binary)
         self._models = open(self.partial / "models.jsonl", text)
         self._next_window = 0
-        if self.save_images:
-            (self.partial / "images").mkdir(exist_ok=True)
+        for wanted, name in ((self.save_images, "images"), (self.video, "frames")):
+            if wanted:
+                (self.partial / name).mkdir(exist_ok=True)
 
     def _reopen(self) -> None:
         """Truncate a stopped run's files to its last checkpoint and carry on from there."""

@@ -122,6 +122,7 @@ class Job:
         max_windows: segment at most this many windows from the start (``None``: all).
         batch_size, workers: as in :meth:`~evseg_torch.pipeline.CascadedSegmenter.stream`.
         save_images: write one figure per window.
+        video: write ``video.mp4``, one frame per window.
         overwrite, resume: as in :class:`~evseg_torch.output.SegmentationWriter`.
         chunk_size: events read at a time.
         device: torch device of level two.
@@ -137,6 +138,7 @@ class Job:
     batch_size: int = 1
     workers: int = 1
     save_images: bool = False
+    video: bool = False
     overwrite: bool = False
     resume: bool = False
     chunk_size: int = 1_000_000
@@ -155,6 +157,7 @@ class Job:
                 "max_windows": self.max_windows,
                 "batch_size": self.batch_size,
                 "save_images": self.save_images,
+                "video": self.video,
             },
         }
 
@@ -189,6 +192,7 @@ def segment_file(job: Job, progress: bool = False) -> dict:
         save_images=job.save_images,
         overwrite=job.overwrite,
         resume=job.resume,
+        video=job.video,
     )
     if writer.summary is not None:
         log.info("%s: already finished in %s", job.path.name, job.out)
@@ -213,7 +217,7 @@ def segment_file(job: Job, progress: bool = False) -> dict:
         )
         with bar:
             for result in results:
-                writer.add(replace(result, offset=result.offset + chunks.skipped))
+                writer.add(replace(result, offset=result.offset + chunks.skipped), chunks.skipped)
                 bar.update(result.window_index + 1 - bar.n)
                 if writer.n_windows % job.batch_size == 0:
                     now = time.perf_counter()

@@ -1,9 +1,10 @@
 """Figures: event images, label colours and the paper's Fig. 1 panels.
 
-The image functions return uint8 RGB arrays (NumPy only); :func:`fig1_figure` draws them with
-matplotlib, the ``viz`` extra, imported only when a figure is made. Conventions follow the field:
-images of events are drawn dark on white, clusters in fixed, distinct colours (label ``k`` always
-gets colour ``k``), unlabelled events in grey.
+The image functions return uint8 RGB arrays (NumPy only); :mod:`evseg_torch.panels` lays them out
+as Fig. 1 with OpenCV, and :func:`fig1_figure` and :func:`boxes_figure` show them with matplotlib, the
+``viz`` extra, imported only when a figure is made. Conventions follow the field: images of events are
+drawn dark on white, clusters in fixed, distinct colours that depend on the id alone (id ``k`` always
+gets the same colour, in every window), unlabelled events in grey.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import numpy as np
 from evseg_torch.errors import EvsegError
 from evseg_torch.event_images import event_counts
 
-# Okabe-Ito-like palette, readable for colour-blind viewers; label k takes colour k mod 10.
+# Okabe-Ito-like palette, readable for colour-blind viewers, for ids 0-9; higher ids step round the hue
+# circle by the golden angle, so neighbouring ids differ.
 PALETTE = np.array(
     [
         [0, 114, 178],
@@ -35,9 +37,19 @@ UNLABELLED = np.array([190, 190, 190], dtype=np.uint8)
 
 
 def label_colors(labels: np.ndarray) -> np.ndarray:
-    """RGB colour of each label, :math:`(N, 3)` uint8; negative labels are grey."""
-    labels = np.asarray(labels)
-    colours = PALETTE[np.mod(labels, len(PALETTE))]
+    """RGB colour of each label (a cluster or object id), :math:`(N, 3)` uint8; negative labels are grey."""
+    labels = np.asarray(labels, dtype=np.int64)
+    colours = PALETTE[np.clip(labels, 0, len(PALETTE) - 1)]
+    beyond = labels >= len(PALETTE)
+    if np.any(beyond):
+        hue = np.mod((labels[beyond] - len(PALETTE)) * 137.508, 360.0) / 60.0
+        # Saturated, mid-bright colours (HSV with S = 0.75, V = 0.8), away from grey and white.
+        high, low = 0.8 * 255, 0.2 * 255
+        mid = low + (high - low) * (1 - np.abs(np.mod(hue, 2) - 1))
+        sector = hue.astype(np.int64) % 6
+        table = np.array([[0, 1, 2], [1, 0, 2], [2, 0, 1], [2, 1, 0], [1, 2, 0], [0, 2, 1]])[sector]
+        values = np.stack([np.full_like(mid, high), mid, np.full_like(mid, low)], axis=1)
+        colours[beyond] = np.rint(np.take_along_axis(values, table, axis=1)).astype(np.uint8)
     colours[labels < 0] = UNLABELLED
     return colours
 
@@ -70,7 +82,8 @@ def fig1_figure(
     metrics: dict | None = None,
     ground_truth: np.ndarray | None = None,
 ):
-    """The paper's Fig. 1 panels for one window, as a matplotlib figure.
+    """The paper's Fig. 1 panels for one window (:func:`evseg_torch.panels.render_fig1`) as a matplotlib
+    figure, e.g. to show in a notebook; to write a PNG, use ``render_fig1`` and ``write_png`` instead.
 
     Panels: (a) raw image of events, (b) feature tracks, (c) feature clusters, (d) the segmented,
     motion-compensated image of events (each event warped by its own cluster's model).
@@ -82,43 +95,12 @@ def fig1_figure(
         ground_truth: optional true layer of each event, :math:`(N,)`; adds a fifth panel of the raw
             events coloured by it.
     """
+    from evseg_torch.panels import render_fig1
+
+    image = render_fig1(segmentation, title=title, metrics=metrics, ground_truth=ground_truth)
     plt = _pyplot()
-    sensor_size = segmentation.sensor_size
-    raw = render_event_image(
-        np.column_stack([segmentation.events["x"], segmentation.events["y"]]), sensor_size
-    )
-    tracks = segmentation.feature_tracks
-    n_panels = 4 if ground_truth is None else 5
-    fig, axes = plt.subplots(1, n_panels, figsize=(4 * n_panels, 3.6), constrained_layout=True)
-    axes[0].imshow(raw)
-    axes[0].set_title("(a) raw events")
-    for ax, colour_by_cluster, name in (
-        (axes[1], False, "(b) feature tracks"),
-        (axes[2], True, "(c) feature clusters"),
-    ):
-        ax.imshow(raw, alpha=0.5)
-        colours = (
-            label_colors(segmentation.feature_labels) / 255.0
-            if colour_by_cluster
-            else np.tile([[0.85, 0.1, 0.1]], (len(tracks.src), 1))
-        )
-        for (x0, y0), (x1, y1), colour in zip(tracks.src, tracks.dst, colours, strict=True):
-            ax.plot([x0, x1], [y0, y1], color=colour, linewidth=1.2)
-        ax.scatter(tracks.src[:, 0], tracks.src[:, 1], s=6, c=colours)
-        ax.set_title(name)
-    axes[3].imshow(render_labels(segmentation.warped_xy, segmentation.labels, sensor_size))
-    axes[3].set_title(f"(d) segmented, compensated ({len(segmentation.models)} clusters)")
-    if ground_truth is not None:
-        raw_xy = np.column_stack([segmentation.events["x"], segmentation.events["y"]])
-        axes[4].imshow(render_labels(raw_xy, ground_truth, sensor_size))
-        axes[4].set_title("ground truth (raw events)")
-    for ax in axes:
-        ax.set_axis_off()
-    header = title or ""
-    if metrics:
-        header += ("\n" if header else "") + "   ".join(f"{k}: {_fmt(v)}" for k, v in metrics.items())
-    if header:
-        fig.suptitle(header)
+    fig = plt.figure(figsize=(image.shape[1] / 100, image.shape[0] / 100), dpi=100)
+    fig.figimage(image)
     return fig
 
 
@@ -175,7 +157,3 @@ def _pyplot():
     except ImportError:
         raise EvsegError("figures need matplotlib: pip install 'evseg-torch[viz]'") from None
     return plt
-
-
-def _fmt(value) -> str:
-    return f"{value:.3f}" if isinstance(value, float) else str(value)

@@ -1,5 +1,6 @@
 """The README's Python quickstart runs exactly as written."""
 
+import importlib.util
 import re
 from pathlib import Path
 
@@ -25,3 +26,15 @@ def test_learning_pipelines_example_runs(capsys, monkeypatch):
     exec(compile(example, "README.md", "exec"), {})
     loss, *shapes = capsys.readouterr().out.split(maxsplit=1)
     assert float(loss) < 0 and "torch.Size([3, 2, 4])" in shapes[0]
+
+
+def test_every_figure_names_the_command_that_makes_it():
+    spec = importlib.util.spec_from_file_location("make_figures", README.parent / "docs" / "make_figures.py")
+    make_figures = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make_figures)
+    text = README.read_text()
+    commands = make_figures.figure_commands(text)
+    assert set(commands) == set(re.findall(r"\]\((docs/[^)]+\.png)\)", text)) and commands
+    for path, command in commands.items():
+        assert (README.parent / path).is_file()
+        assert str(Path(path).parent) in command.split()  # the command writes into the figure's folder

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from evseg_torch.errors import EvsegError
+from evseg_torch.errors import EvsegError, ShapeError
 from evseg_torch.level_one.features import Correspondences
+from evseg_torch.panels import PANEL_SIDE, VIDEO_PANELS, render_fig1, write_png
 from evseg_torch.pipeline import Segmentation
 from evseg_torch.viz import (
     PALETTE,
@@ -16,11 +17,15 @@ from evseg_torch.viz import (
 )
 
 
-def test_label_colors_are_fixed_and_grey_for_unlabelled():
-    colours = label_colors(np.array([0, 1, -1, 10]))
+def test_label_colors_are_a_function_of_the_id():
+    ids = np.array([0, 1, -1, 10, 11, 10])
+    colours = label_colors(ids)
     np.testing.assert_array_equal(colours[0], PALETTE[0])
     np.testing.assert_array_equal(colours[2], UNLABELLED)
-    np.testing.assert_array_equal(colours[3], PALETTE[0])
+    np.testing.assert_array_equal(colours[3], colours[5])
+    np.testing.assert_array_equal(label_colors(ids[::-1]), colours[::-1])  # not a function of the order
+    beyond = label_colors(np.arange(10, 40))
+    assert len({tuple(c) for c in beyond}) == 30 and not any((c == UNLABELLED).all() for c in beyond)
 
 
 def test_count_image_rounds_and_drops_outside():
@@ -37,30 +42,73 @@ def test_render_labels_takes_the_majority_per_pixel():
     np.testing.assert_array_equal(image[0, 1], [255, 255, 255])
 
 
-@pytest.mark.parametrize("ground_truth", [None, np.array([0, 1, 1])])
-def test_fig1_panels(tmp_path, ground_truth):
-    events = np.zeros(3, dtype=[("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "i1")])
-    events["x"], events["y"] = [1, 2, 3], [1, 1, 2]
-    tracks = Correspondences(np.array([[1.0, 1.0]]), np.array([[2.0, 1.0]]), np.array([0.01]), 0.0, 0.01)
-    segmentation = Segmentation(
-        labels=np.array([0, 1, 1]),
-        models=np.zeros((2, 2)),
+def _segmentation(xy, labels, sensor_size, n_clusters):
+    events = np.zeros(len(xy), dtype=[("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "i1")])
+    events["t"] = np.arange(len(xy)) * 10
+    events["x"], events["y"] = np.asarray(xy).T
+    start = np.asarray(xy[:1], dtype=float)
+    tracks = Correspondences(start, start + np.array([1.0, 0.0]), np.array([0.01]), 0.0, 0.01)
+    return Segmentation(
+        labels=np.asarray(labels),
+        models=np.zeros((n_clusters, 2)),
         motion_model="translation",
-        warped_xy=np.array([[1.0, 1], [2, 1], [3, 2]]),
+        warped_xy=np.asarray(xy, dtype=float),
         t_ref=0.0,
         feature_tracks=tracks,
         feature_labels=np.array([0]),
         level_one_models=np.zeros((1, 2)),
-        iwes=np.zeros((2, 4, 5)),
-        soft_assignments=np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 1.0]]),
+        iwes=np.zeros((n_clusters, *sensor_size)),
+        soft_assignments=np.eye(n_clusters)[labels],
         energy_history=(1.0,),
         timings_ms={},
-        sensor_size=(4, 5),
+        sensor_size=sensor_size,
         events=events,
     )
-    fig = fig1_figure(segmentation, title="t", metrics={"accuracy": 1.0}, ground_truth=ground_truth)
-    assert len(fig.axes) == (4 if ground_truth is None else 5)
-    assert save_figure(fig, tmp_path / "f.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("ground_truth", [None, np.array([0, 1, 1])])
+def test_fig1_panels(tmp_path, ground_truth):
+    segmentation = _segmentation([[1, 1], [2, 1], [3, 2]], [0, 1, 1], (4, 5), 2)
+    image = render_fig1(segmentation, title="t", metrics={"accuracy": 1.0}, ground_truth=ground_truth)
+    assert image.dtype == np.uint8 and image.ndim == 3
+    assert write_png(image, tmp_path / "f.png").stat().st_size > 1000
+    fig = fig1_figure(segmentation, title="t", ground_truth=ground_truth)
+    assert save_figure(fig, tmp_path / "g.png").stat().st_size > 1000
+
+
+def _colour_pixels(image, colour):
+    return int(np.all(image == colour, axis=2).sum())
+
+
+def test_fig1_crops_to_the_events_and_colours_by_id():
+    # A small active region of a large sensor fills its panels after cropping.
+    rng = np.random.default_rng(0)
+    xy = np.column_stack([rng.integers(600, 640, 400), rng.integers(300, 320, 400)])
+    labels = (xy[:, 0] >= 620).astype(int)
+    segmentation = _segmentation(xy, labels, (800, 1280), 2)
+    cropped = render_fig1(segmentation, panels=("segmented",))
+    whole = render_fig1(segmentation, panels=("segmented",), crop=False)
+    assert _colour_pixels(cropped, PALETTE[1]) > 20 * _colour_pixels(whole, PALETTE[1]) > 0
+    # Colours follow the ids given to the clusters, not the clusters' order.
+    relabelled = render_fig1(segmentation, panels=("segmented",), ids=np.array([7, 3]))
+    assert _colour_pixels(relabelled, PALETTE[0]) == 0
+    assert _colour_pixels(relabelled, PALETTE[7]) > 0 and _colour_pixels(relabelled, PALETTE[3]) > 0
+    with pytest.raises(ShapeError, match="ids"):
+        render_fig1(segmentation, ids=np.array([1]))
+
+
+def test_fig1_layout_follows_the_crops_shape():
+    wide = _segmentation([[0, 0], [199, 9]], [0, 0], (10, 200), 1)
+    tall = _segmentation([[0, 0], [9, 199]], [0, 0], (200, 10), 1)
+    # A wide sensor's four panels (400 px wide each) stack in one column, a tall one's (400 px high) line up.
+    assert render_fig1(wide, crop=False).shape[1] < 2 * PANEL_SIDE
+    assert render_fig1(tall, crop=False).shape[0] < 2 * PANEL_SIDE
+    # Video frames: the whole sensor, so one size for every window.
+    first = render_fig1(wide, panels=VIDEO_PANELS, crop=False)
+    other = render_fig1(
+        _segmentation([[5, 5], [6, 5]], [0, 0], (10, 200), 1), panels=VIDEO_PANELS, crop=False
+    )
+    assert first.shape == other.shape
 
 
 def test_boxes_figure(tmp_path):

@@ -29,6 +29,7 @@ class Affine4(MotionModel):
 
     name = "affine4"
     param_names = ("v_x", "v_y", "d", "r")
+    param_units = ("px/s", "px/s", "1/s", "1/s")
     min_samples = 2
 
     def jacobian(self, xy):

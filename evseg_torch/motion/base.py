@@ -73,6 +73,9 @@ class MotionEstimate:
 class MotionModel(ABC):
     """A family of image motions on a sensor of size ``(H, W)``, stateless in its parameters.
 
+    Class attributes ``name``, ``param_names`` and ``param_units`` name the family and the order and units
+    of its parameters (the columns of every parameter array; written into results' ``models.jsonl``).
+
     Attributes:
         sensor_size: ``(H, W)``.
         principal_point: ``(cx, cy)`` about which scale and rotation act; defaults to the image
@@ -81,6 +84,7 @@ class MotionModel(ABC):
 
     name: ClassVar[str]
     param_names: ClassVar[tuple[str, ...]]
+    param_units: ClassVar[tuple[str, ...]]
     min_samples: ClassVar[int]
 
     sensor_size: tuple[int, int]

@@ -33,6 +33,7 @@ class Rotation3D(MotionModel):
 
     name = "rotation3d"
     param_names = ("w_x", "w_y", "w_z")
+    param_units = ("rad/s", "rad/s", "rad/s")
     min_samples = 2
 
     focal: tuple[float, float] | None = None

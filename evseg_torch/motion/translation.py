@@ -21,6 +21,7 @@ class Translation(MotionModel):
 
     name = "translation"
     param_names = ("v_x", "v_y")
+    param_units = ("px/s", "px/s")
     min_samples = 1
 
     def jacobian(self, xy):
