@@ -299,7 +299,7 @@ def _parser() -> argparse.ArgumentParser:
 def _segment(args) -> int:
     from evseg_torch.config import SegmenterConfig, load_config
     from evseg_torch.io import resolve_sensor_size, scan_sensor_size
-    from evseg_torch.runs import Job, check_input, output_folders, segment_files, with_window
+    from evseg_torch.runs import Job, check_input, failure, output_folders, segment_files, with_window
 
     config = load_config(args.config) if args.config else SegmenterConfig()
     _check_counts(args, "batch_size", "workers", "max_windows", "chunk_size", "events_per_window")
@@ -342,7 +342,7 @@ def _segment(args) -> int:
         except (EvsegError, OSError) as err:
             if not args.keep_going:
                 raise
-            failed.append(_report(name, err))
+            failed.append(failure(name, err))
             continue
         jobs.append(
             Job(
@@ -366,7 +366,7 @@ def _segment(args) -> int:
     outcomes = segment_files(jobs, workers=args.workers, keep_going=args.keep_going, progress=not args.quiet)
     for job, summary, error in outcomes:
         if error is not None:
-            failed.append(f"{job.path}: {error}")
+            failed.append(error)
             continue
         log.info(
             "%s: %d events, %d windows, %.0f events/s -> %s",
@@ -377,19 +377,11 @@ def _segment(args) -> int:
             job.out,
         )
     if failed:
-        log.error("evseg: %d of %d inputs failed:", len(failed), len(args.inputs))
+        print(f"evseg: {len(failed)} of {len(args.inputs)} inputs failed:", file=sys.stderr)
         for line in failed:
-            log.error("  %s", line)
+            print(f"  {line}", file=sys.stderr)
         return 1
     return 0
-
-
-def _report(name, err: BaseException) -> str:
-    from evseg_torch.runs import one_line
-
-    message = one_line(err)
-    log.error("evseg: error: %s", message)
-    return message if str(name) in message else f"{name}: {message}"
 
 
 def _check_counts(args, *names: str) -> None:

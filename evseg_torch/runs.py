@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import signal
+import sys
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -304,7 +305,8 @@ def segment_files(jobs: Sequence[Job], workers: int = 1, keep_going: bool = Fals
 
     Returns:
         One ``(job, summary or None, error message or None)`` per job, in order (with ``keep_going``,
-        the failed ones have a message; without it the first failure is raised).
+        the failed ones have a message, already reported on standard error; without it the first failure
+        is raised).
 
     Raises:
         EvsegError: a job failed and ``keep_going`` is off.
@@ -342,9 +344,16 @@ def _attempt(job: Job, keep_going: bool, progress: bool):
     except (EvsegError, OSError) as err:
         if not keep_going:
             raise
-        message = one_line(err)
-        log.error("evseg: error: %s", message)
-        return job, None, message
+        return job, None, failure(job.path, err)
+
+
+def failure(path, err: BaseException) -> str:
+    """Report an input that failed on standard error at once, as one line naming it; returns the line."""
+    message = one_line(err)
+    if str(path) not in message:
+        message = f"{path}: {message}"
+    print(f"evseg: error: {message}", file=sys.stderr, flush=True)
+    return message
 
 
 def _file_worker() -> None:
