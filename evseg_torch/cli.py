@@ -78,6 +78,7 @@ def _parser() -> argparse.ArgumentParser:
         "are, batch by batch (the batch size is raised to at least this; the results do not change)",
     )
     segment.add_argument("--overwrite", action="store_true", help="replace existing output")
+    segment.add_argument("--topic", help="ROS bags: the topic of event arrays (default: the first by name)")
     segment.add_argument("--chunk-size", type=int, default=1_000_000, help="events read at a time")
     segment.add_argument(
         "--batch-size",
@@ -249,7 +250,7 @@ def _segment(args) -> int:
             raise EvsegError(
                 f"{path}: unknown format {path.suffix!r}; supported: {' '.join(SUPPORTED_SUFFIXES)}"
             )
-        sensor_size = args.sensor_size or read_sensor_size(path)
+        sensor_size = args.sensor_size or read_sensor_size(path, topic=args.topic)
         if sensor_size is None:
             raise EvsegError(f"{path}: the file does not store the sensor size; pass --sensor-size HxW")
         out = args.out / path.stem
@@ -263,6 +264,7 @@ def _segment(args) -> int:
         "save_images": args.save_images,
         "overwrite": args.overwrite,
         "chunk_size": args.chunk_size,
+        "topic": args.topic,
         "batch_size": args.batch_size,
         "progress": not args.quiet and (args.workers <= 1 or len(jobs) == 1),
     }
@@ -302,12 +304,14 @@ def segment_file(
     save_images=False,
     overwrite=False,
     chunk_size=1_000_000,
+    topic=None,
     batch_size=1,
     workers=1,
     progress=False,
 ) -> dict:
     """Segment one recording window by window and write its results (see :mod:`evseg_torch.output`);
-    ``batch_size`` and ``workers`` as in :meth:`~evseg_torch.pipeline.CascadedSegmenter.stream`."""
+    ``topic`` picks a ROS bag's event topic; ``batch_size`` and ``workers`` as in
+    :meth:`~evseg_torch.pipeline.CascadedSegmenter.stream`."""
     from tqdm.auto import tqdm
 
     from evseg_torch.config import replace_config
@@ -320,7 +324,7 @@ def segment_file(
         overrides["events_per_window"] = events_per_window
     config = replace_config(config, **overrides)
     segmenter = CascadedSegmenter(sensor_size, config)
-    counted = _CountingChunks(iter_event_chunks(path, chunk_size, sensor_size=sensor_size))
+    counted = _CountingChunks(iter_event_chunks(path, chunk_size, sensor_size=sensor_size, topic=topic))
     start = time.perf_counter()
     with SegmentationWriter(out, config, save_images=save_images, overwrite=overwrite) as writer:
         results = segmenter.stream(counted, batch_size=batch_size, workers=workers)
