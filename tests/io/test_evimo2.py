@@ -92,7 +92,7 @@ def test_evaluate_scores_it(tmp_path, events, masks):
 
     results = evaluate_evimo(oracle, sequence, window_ms=4, min_events=10)
     assert [r.status for r in results] == [EVALUATED] * 3
-    assert all(r.event_wise_iou == 1.0 for r in results)
+    assert all(r.event_iou == r.event_wise_iou == 1.0 for r in results)
 
 
 def test_untrusted_meta_is_not_unpickled(tmp_path, events, masks):
