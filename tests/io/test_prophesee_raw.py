@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from expelliarmus import Wizard
 
+from evseg_torch.cli import main
 from evseg_torch.errors import ReaderError
 from evseg_torch.events import as_events
 from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size, reader_for
@@ -117,8 +118,6 @@ def test_evt2_sample_loads(real_data):
 
 @pytest.mark.realdata
 def test_cli_segments_the_evt2_sample(real_data, tmp_path):
-    from evseg_torch.cli import main
-
     path = real_data / SAMPLES / "evt2_sample.raw"
     assert main(["--quiet", "segment", str(path), "--out", str(tmp_path), "--window-ms", "25"]) == 0
     summary = json.loads((tmp_path / "evt2_sample" / "summary.json").read_text())

@@ -1,5 +1,6 @@
 """The ROS bag reader, on ROS 1 bags and ROS 2 bag folders written here by rosbags itself."""
 
+import json
 import tracemalloc
 
 import numpy as np
@@ -8,6 +9,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from evseg_torch.cli import main
 from evseg_torch.errors import ConfigError, ReaderError
 from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size, reader_for
 from tests.io._writers import HEIGHT, WIDTH, make_events, write_txt
@@ -152,3 +154,14 @@ def test_a_million_events_stream_in_bounded_memory(tmp_path):
     assert count == n and last == make_events(n=n)["t"][-1]
     whole = n * 16  # the bag's events in canonical form; decoded as messages they take 40 times that
     assert peak < whole / 3, f"peak {peak / 2**20:.1f} MiB while streaming {whole / 2**20:.1f} MiB of events"
+
+
+def test_cli_segments_the_chosen_topic(tmp_path):
+    bag = write_ros1(tmp_path / "a.bag", {"/a": make_events(n=50, seed=1), "/b": make_events(n=3000, seed=2)})
+    out = tmp_path / "out"
+    assert (
+        main(["--quiet", "segment", str(bag), "--out", str(out), "--topic", "/b", "--window-ms", "30"]) == 0
+    )
+    summary = json.loads((out / "a" / "summary.json").read_text())
+    assert summary["events"] == 3000 and summary["sensor_size"] == [HEIGHT, WIDTH]
+    assert main(["--quiet", "segment", str(bag), "--out", str(out), "--topic", "/nope", "--overwrite"]) == 2
