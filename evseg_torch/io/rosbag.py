@@ -79,12 +79,6 @@ def sensor_size(path: Path, topic: str | None = None) -> tuple[int, int] | None:
     raise ReaderError(f"the event topic {connections[0].topic!r} holds no messages")
 
 
-def event_topics(path: Path) -> list[str]:
-    """The bag's topics of event arrays, in name order."""
-    with _rosbags_errors(), AnyReader([path], default_typestore=_typestore()) as reader:
-        return sorted({c.topic for c in reader.connections if c.msgtype in EVENT_ARRAY_TYPES})
-
-
 def _messages(path: Path, topic: str | None) -> Iterator[np.ndarray]:
     with _rosbags_errors(), AnyReader([path], default_typestore=_typestore()) as reader:
         for connection, _, raw in reader.messages(connections=_event_connections(reader, topic)):
