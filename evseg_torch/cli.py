@@ -116,6 +116,7 @@ def _parser() -> argparse.ArgumentParser:
         "windows are shared out batch by batch, so with one input --workers needs --batch-size of at least "
         "as many (otherwise one process runs). The results do not change with --workers",
     )
+    segment.add_argument("--topic", help="ROS bags: the topic of event arrays (default: the first by name)")
     segment.add_argument(
         "--batch-size",
         type=int,
@@ -237,11 +238,14 @@ def _parser() -> argparse.ArgumentParser:
     evimo = protocols.add_parser(
         "evimo",
         parents=[common],
-        help="EV-IMO IoU (convex-hull and event-wise)",
+        help="EV-IMO IoU (convex-hull, event-wise, and learned maskers' mIoU, pIoU, SR@0.5, event IoU)",
         description="EV-IMO protocol: windows at the mask timestamps; reports the convex-hull mask IoU "
-        "(IROS/EMSGC definition) and the event-wise IoU (MOMS/0-MMS/SpikeMS definition).",
+        "(IROS/EMSGC definition), the event-wise IoU (MOMS/0-MMS/SpikeMS definition), the learned maskers' "
+        "mIoU, pIoU and SR@0.5 (event_suppression) and the event-level IoU (EVIMO2).",
     )
-    evimo.add_argument("path", type=Path, metavar="PATH", help="EV-IMO 1 .npz sequence")
+    evimo.add_argument(
+        "path", type=Path, metavar="PATH", help="EV-IMO 1 .npz sequence, or an EVIMO2v2 sequence folder"
+    )
     evimo.add_argument(
         "--trusted", action="store_true", help="allow unpickling the file's meta (mask timestamps)"
     )
@@ -330,9 +334,9 @@ def _segment(args) -> int:
     for name, out in zip(args.inputs, folders, strict=True):
         try:
             path = check_input(name)
-            sensor_size = resolve_sensor_size(path, args.sensor_size)
+            sensor_size = resolve_sensor_size(path, args.sensor_size, topic=args.topic)
             if sensor_size is None:
-                sensor_size = scan_sensor_size(path, args.chunk_size)
+                sensor_size = scan_sensor_size(path, args.chunk_size, topic=args.topic)
                 log.info(
                     "%s stores no sensor size: %dx%d, the smallest that holds its events (or pass "
                     "--sensor-size HxW)",
@@ -360,6 +364,7 @@ def _segment(args) -> int:
                 overwrite=args.overwrite,
                 resume=args.resume,
                 chunk_size=args.chunk_size,
+                topic=args.topic,
                 device=device,
             )
         )
@@ -627,11 +632,12 @@ def _evaluate_eed(args) -> int:
 def _evaluate_evimo(args) -> int:
     from evseg_torch.config import SegmenterConfig, load_config
     from evseg_torch.evaluation.evimo import evaluate_evimo, summarize_evimo
-    from evseg_torch.io import load_evimo
+    from evseg_torch.io import load_evimo, load_evimo2
     from evseg_torch.pipeline import CascadedSegmenter
 
     config = load_config(args.config) if args.config else SegmenterConfig()
-    sequence = load_evimo(args.path, trusted=args.trusted)
+    load = load_evimo2 if args.path.is_dir() else load_evimo
+    sequence = load(args.path, trusted=args.trusted)
     segmenter = CascadedSegmenter(sequence.sensor_size, config).to(_device(args.device))
     results = evaluate_evimo(
         segmenter, sequence, window_ms=args.window_ms or config.window.window_ms, progress=not args.quiet
@@ -645,7 +651,7 @@ def _evaluate_evimo(args) -> int:
 
 def _evaluate_labelled(args) -> int:
     from evseg_torch.config import SegmenterConfig, load_config
-    from evseg_torch.evaluation.labelled import evaluate_labelled
+    from evseg_torch.evaluation.labelled import evaluate_labelled, summarize_dynamic
     from evseg_torch.evaluation.predictions import evaluate_predictions
     from evseg_torch.evaluation.synthetic import summarize
 
@@ -715,6 +721,9 @@ def _evaluate_labelled(args) -> int:
     line = _summary_line(summary)
     # Predictions carry no time, so their summary ends before the (NaN) median time.
     print(line if args.predictions is None else line.rsplit(", median", 1)[0])
+    dynamic = summarize_dynamic(scores)
+    print("dynamic class: " + ", ".join(f"{name} {value:.3f}" for name, value in dynamic.items()))
+    summary |= dynamic
     _write_json(args.json, {"method": method, "summary": summary, "files": [vars(s) for s in scores]})
     return 0
 

@@ -12,6 +12,14 @@ Definitions (reference §3):
   convex hull of its motion-compensated events; IoU of the union of object masks against the
   ground-truth mask.
 * **Box IoU**: intersection over union of ``[x, y, w, h]`` boxes (EED's detection criterion: IoU > 0.5).
+* **Dynamic-class metrics of learned maskers** (uzh-rpg/event_suppression, ``evsup/metrics.py``): with
+  a predicted and a ground-truth binary *dynamic* mask, the dynamic IoU is :func:`mask_iou`; **mIoU** is
+  the mean of the dynamic and the background (complement) IoUs, ignoring an undefined one
+  (:func:`mean_iou`); **pIoU** is the IoU over the pixels that hold events only (:func:`event_pixel_iou`);
+  **SR@0.5** is the fraction of frames whose dynamic IoU is at least 0.5, over the frames where it is
+  defined (:func:`success_rate`).
+* **Event IoU** (event level, as EVIMO2 evaluations report it per sequence): the IoU of the set of events
+  predicted dynamic and the set of events on ground-truth object pixels (:func:`event_iou`).
 * **Nested boxes**: the intersection covers more than half of the smaller box and the larger box's area
   is at most 4 times the smaller's (a compensated object inside the larger GT box drawn around its
   motion-blurred image counts; a box swallowing half the image does not).
@@ -153,6 +161,77 @@ def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
         raise ShapeError(f"masks differ in shape: {a.shape} and {b.shape}")
     union = np.count_nonzero(a | b)
     return float(np.count_nonzero(a & b) / union) if union else float("nan")
+
+
+def mean_iou(pred_dynamic: np.ndarray, gt_dynamic: np.ndarray) -> float:
+    """mIoU of a binary dynamic/background labelling: the mean of the two classes' IoUs.
+
+    Args:
+        pred_dynamic, gt_dynamic: bool arrays of one shape (pixels :math:`(H, W)` or events :math:`(N,)`).
+
+    Returns:
+        ``(IoU(dynamic) + IoU(background)) / 2``; a class absent from both is left out of the mean (as
+        ``nanmean`` in event_suppression); NaN when both arrays are empty.
+
+    Examples:
+        >>> mean_iou(np.array([1, 1, 0, 0], bool), np.array([1, 0, 0, 0], bool))  # (1/2 + 2/3) / 2
+        0.5833333333333333
+    """
+    pred, gt = np.asarray(pred_dynamic, dtype=bool), np.asarray(gt_dynamic, dtype=bool)
+    ious = [mask_iou(pred, gt), mask_iou(~pred, ~gt)]
+    defined = [value for value in ious if not np.isnan(value)]
+    return float(np.mean(defined)) if defined else float("nan")
+
+
+def event_pixel_iou(pred_mask: np.ndarray, gt_mask: np.ndarray, event_mask: np.ndarray) -> float:
+    """pIoU: the dynamic IoU counted only on the pixels that hold at least one event.
+
+    Args:
+        pred_mask, gt_mask: predicted and ground-truth dynamic masks, bool :math:`(H, W)`.
+        event_mask: the pixels holding events, bool :math:`(H, W)`.
+
+    Returns:
+        ``mask_iou(pred_mask & event_mask, gt_mask & event_mask)``; NaN when both are empty.
+    """
+    event_mask = np.asarray(event_mask, dtype=bool)
+    return mask_iou(
+        np.asarray(pred_mask, dtype=bool) & event_mask, np.asarray(gt_mask, dtype=bool) & event_mask
+    )
+
+
+def success_rate(ious, threshold: float = 0.5) -> float:
+    """SR@threshold: the fraction of frames whose IoU is at least ``threshold``, NaN frames left out.
+
+    Returns:
+        A fraction in [0, 1]; NaN when no frame has a defined IoU.
+
+    Examples:
+        >>> success_rate([0.7, 0.5, 0.2, float("nan")])
+        0.6666666666666666
+    """
+    values = np.asarray(ious, dtype=np.float64)
+    values = values[~np.isnan(values)]
+    return float(np.mean(values >= threshold)) if len(values) else float("nan")
+
+
+def event_iou(is_dynamic: np.ndarray, events: np.ndarray, gt_mask: np.ndarray) -> float:
+    """Event IoU: the events predicted dynamic against the events on ground-truth object pixels.
+
+    Args:
+        is_dynamic: whether each event is predicted dynamic, bool :math:`(N,)`.
+        events: canonical events :math:`(N,)` inside the mask.
+        gt_mask: the ground-truth object mask, bool :math:`(H, W)`.
+
+    Returns:
+        ``|P ∩ G| / |P ∪ G|`` over events (an event counts once per event, not per pixel); NaN when no
+        event is predicted dynamic and none lies on the object.
+    """
+    is_dynamic = np.asarray(is_dynamic, dtype=bool)
+    if is_dynamic.shape != events.shape:
+        raise ShapeError(
+            f"is_dynamic must be (N,) like the events, got {is_dynamic.shape} for {events.shape}"
+        )
+    return mask_iou(is_dynamic, np.asarray(gt_mask, dtype=bool)[events["y"], events["x"]])
 
 
 def _labels(pred, gt) -> tuple[np.ndarray, np.ndarray]:

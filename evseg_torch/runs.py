@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from evseg_torch.config import SegmenterConfig, config_to_dict, replace_config
-from evseg_torch.errors import EvsegError, ReaderError
+from evseg_torch.errors import EvsegError
 
 log = logging.getLogger("evseg")
 
@@ -126,6 +126,7 @@ class Job:
         video: write ``video.mp4``, one frame per window.
         overwrite, resume: as in :class:`~evseg_torch.output.SegmentationWriter`.
         chunk_size: events read at a time.
+        topic: ROS bags: the topic of event arrays (``None``: the first).
         device: torch device of level two.
     """
 
@@ -143,6 +144,7 @@ class Job:
     overwrite: bool = False
     resume: bool = False
     chunk_size: int = 1_000_000
+    topic: str | None = None
     device: str = "cpu"
 
     def identity(self) -> dict:
@@ -153,6 +155,7 @@ class Job:
             "config": config_to_dict(self.config),
             "options": {
                 "sensor_size": list(self.sensor_size),
+                "topic": self.topic,
                 "start_s": self.start_s,
                 "end_s": self.end_s,
                 "max_windows": self.max_windows,
@@ -185,7 +188,9 @@ def segment_file(job: Job, progress: bool = False) -> dict:
 
     started = time.perf_counter()
     segmenter = CascadedSegmenter(job.sensor_size, job.config).to(job.device)
-    chunks = TimeRange(iter_event_chunks(job.path, job.chunk_size, sensor_size=job.sensor_size), job)
+    chunks = TimeRange(
+        iter_event_chunks(job.path, job.chunk_size, sensor_size=job.sensor_size, topic=job.topic), job
+    )
     writer = SegmentationWriter(
         job.out,
         job.config,
@@ -364,22 +369,16 @@ def _file_worker() -> None:
 
 
 def check_input(path: str | Path) -> Path:
-    """``path`` as a :class:`~pathlib.Path` if it names a readable recording.
+    """``path`` as a :class:`~pathlib.Path` if it names a recording some reader takes (a file by its
+    suffix, a folder by its layout), without reading its events.
 
     Raises:
-        ReaderError: missing, a folder, or an unknown format.
+        ReaderError: missing, of an unknown format, or a folder of no known layout.
     """
-    from evseg_torch.io import SUPPORTED_SUFFIXES
+    from evseg_torch.io import reader_for
 
-    path = Path(path)
-    if path.is_dir():
-        raise ReaderError(f"{path} is a folder, not an event file")
-    if not path.is_file():
-        raise ReaderError(f"{path}: no such file")
-    if path.suffix.lower() not in SUPPORTED_SUFFIXES:
-        supported = " ".join(SUPPORTED_SUFFIXES)
-        raise ReaderError(f"{path}: unknown format {path.suffix!r}; supported: {supported}")
-    return path
+    reader_for(path)
+    return Path(path)
 
 
 def with_window(config: SegmenterConfig, window_ms=None, stride_ms=None, events_per_window=None):

@@ -156,7 +156,7 @@ def _text(tmp_path, name, lines):
     ("make", "args", "message"),
     [
         (lambda p: p / "missing.txt", ["--sensor-size", SIZE], "no such file"),
-        (lambda p: _text(p, "events.xyz", ["0 1 1 1"]), ["--sensor-size", SIZE], "unknown format"),
+        (lambda p: _text(p, "events.xyz", ["0 1 1 1"]), ["--sensor-size", SIZE], "unknown event file suffix"),
         (_truncated_npz, ["--sensor-size", SIZE], "cut.npz"),
         (_garbled_npz, ["--sensor-size", SIZE], "bad.npz"),
         (lambda p: _text(p, "far.txt", ["0.0 500 1 1"]), ["--sensor-size", SIZE], "outside the sensor"),

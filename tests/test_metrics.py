@@ -2,16 +2,21 @@ import numpy as np
 import pytest
 
 from evseg_torch.errors import ShapeError
+from evseg_torch.events import EVENT_DTYPE
 from evseg_torch.metrics import (
     box_intersection,
     box_iou,
     box_of_points,
     boxes_nested,
     convex_hull_mask,
+    event_iou,
+    event_pixel_iou,
     labelling_accuracy,
     mask_iou,
     match_clusters,
+    mean_iou,
     per_object_iou,
+    success_rate,
 )
 
 
@@ -103,3 +108,42 @@ class TestMasks:
         assert np.isnan(mask_iou(np.zeros((2, 2)), np.zeros((2, 2))))
         with pytest.raises(ShapeError):
             mask_iou(a, np.zeros((3, 3)))
+
+
+class TestLearnedMaskerMetrics:
+    """Hand-computed values on 2 x 3 masks (event_suppression's definitions)."""
+
+    PRED = np.array([[1, 1, 0], [0, 0, 0]], dtype=bool)
+    GT = np.array([[1, 0, 0], [0, 0, 1]], dtype=bool)
+
+    def test_mean_iou(self):
+        # Dynamic: 1 shared of 3 pixels; background: 3 shared ((0,2), (1,0), (1,1)) of 5.
+        assert mean_iou(self.PRED, self.GT) == pytest.approx((1 / 3 + 3 / 5) / 2)
+        assert mean_iou(self.PRED, self.PRED) == 1.0
+
+    def test_mean_iou_leaves_out_a_class_absent_from_both(self):
+        empty = np.zeros((2, 3), dtype=bool)
+        assert mean_iou(empty, empty) == 1.0  # the dynamic IoU is undefined, the background one is 1
+        assert mean_iou(self.PRED, empty) == pytest.approx((0 + 4 / 6) / 2)
+
+    def test_event_pixel_iou(self):
+        events = np.array([[1, 0, 1], [0, 0, 1]], dtype=bool)
+        # On event pixels: predicted {(0,0)}, ground truth {(0,0), (1,2)}.
+        assert event_pixel_iou(self.PRED, self.GT, events) == 0.5
+        assert np.isnan(event_pixel_iou(self.PRED, self.GT, np.zeros((2, 3), dtype=bool)))
+
+    def test_success_rate(self):
+        assert success_rate([0.5, 0.49, float("nan"), 0.9]) == pytest.approx(2 / 3)
+        assert success_rate([0.5, 0.49], threshold=0.4) == 1.0
+        assert np.isnan(success_rate([float("nan")])) and np.isnan(success_rate([]))
+
+    def test_event_iou_counts_events_not_pixels(self):
+        events = np.zeros(5, dtype=EVENT_DTYPE)
+        # (x, y): two events on object pixel (0, 0), one on object pixel (2, 1), two off the object.
+        events["x"], events["y"] = [0, 0, 2, 1, 2], [0, 0, 1, 0, 0]
+        is_dynamic = np.array([True, True, False, True, False])
+        # Predicted {0, 1, 3}, on the object {0, 1, 2}: 2 shared of 4.
+        assert event_iou(is_dynamic, events, self.GT) == 0.5
+        assert np.isnan(event_iou(np.zeros(2, bool), events[3:], self.GT))
+        with pytest.raises(ShapeError):
+            event_iou(is_dynamic[:2], events, self.GT)

@@ -238,7 +238,7 @@ def test_option_errors_are_one_line(recording, tmp_path, capsys, args, message):
 
 def test_input_errors_are_one_line(tmp_path, capsys):
     assert _segment(tmp_path, "--out", tmp_path / "o") == 2
-    assert f"{tmp_path} is a folder, not an event file" in _last_error(capsys)
+    assert f"{tmp_path}: a folder of no known layout" in _last_error(capsys)
     empty = tmp_path / "empty.npy"
     np.save(empty, np.zeros(0, dtype=EVENT_DTYPE))
     assert _segment(empty, "--out", tmp_path / "o", "--sensor-size", "90x120") == 2

@@ -20,6 +20,15 @@ For each mask of the sequence, at time ``t`` (seconds, the events' time base):
    (the IoU of the binary 2-D occupancy images of predicted-IMO events and GT-masked events). It is
    NaN when both sets are empty (no event on the object and none predicted as IMO).
 
+5. **Learned maskers' metrics** (uzh-rpg/event_suppression ``evsup/metrics.py``), so that learned
+   baselines' tables compare: the predicted dynamic mask is the convex-hull mask ``P`` of step 3 (so the
+   *pixel IoU of the dynamic class* is the convex-hull IoU), ``mIoU`` is the mean of the dynamic IoU and
+   the background IoU ``|~P ∩ ~G| / |~P ∪ ~G|``, ``pIoU`` is the dynamic IoU over the pixels holding at
+   least one event of the window, and ``SR@0.5`` is the fraction of evaluated frames whose convex-hull IoU
+   is at least 0.5.
+6. **Event IoU** (event level, per frame containing an object, as EVIMO2 evaluations report it): the IoU of
+   the window's events labelled IMO and the window's events on ``G`` pixels, counting events, not pixels.
+
 A sequence's score is the mean over its evaluated frames of each IoU. The two definitions give
 different numbers (the convex hull fills the object's interior, the event-wise IoU counts only pixels
 with events), so only the convex-hull IoU compares with the IROS 2021 / EMSGC tables.
@@ -33,7 +42,14 @@ import numpy as np
 
 from evseg_torch.errors import ShapeError
 from evseg_torch.event_images import event_counts
-from evseg_torch.metrics import convex_hull_mask, mask_iou
+from evseg_torch.metrics import (
+    convex_hull_mask,
+    event_iou,
+    event_pixel_iou,
+    mask_iou,
+    mean_iou,
+    success_rate,
+)
 
 CONVEX_HULL_IOU = (
     "convex-hull mask IoU (IROS 2021 / EMSGC): union of the convex hulls of the IMO clusters' "
@@ -43,6 +59,10 @@ EVENT_WISE_IOU = (
     "event-wise IoU (MOMS / 0-MMS / SpikeMS): pixel occupancy of the events predicted as IMO vs "
     "that of the events inside the EV-IMO mask"
 )
+MIOU = "mIoU (event_suppression): mean of the dynamic (convex-hull mask) and background IoUs"
+PIOU = "pIoU (event_suppression): the convex-hull mask IoU over the pixels holding events of the window"
+SR_AT_05 = "SR@0.5 (event_suppression): fraction of evaluated frames with convex-hull mask IoU >= 0.5"
+EVENT_IOU = "event IoU (EVIMO2): events labelled IMO vs events on object pixels, counted per event"
 
 EVALUATED, EMPTY_GT, TOO_FEW_EVENTS = "evaluated", "empty_gt", "too_few_events"
 
@@ -60,6 +80,9 @@ class FrameResult:
         predicted_pixels: pixels of the predicted convex-hull mask.
         convex_hull_iou: the convex-hull mask IoU; NaN unless evaluated.
         event_wise_iou: the event-wise IoU; NaN unless evaluated, or when it is undefined.
+        miou: mean of the dynamic and background pixel IoUs; NaN unless evaluated.
+        piou: the convex-hull mask IoU over the pixels holding events; NaN unless evaluated or undefined.
+        event_iou: the event-level IoU; NaN unless evaluated, or when it is undefined.
     """
 
     t_s: float
@@ -70,6 +93,9 @@ class FrameResult:
     predicted_pixels: int
     convex_hull_iou: float
     event_wise_iou: float
+    miou: float = float("nan")
+    piou: float = float("nan")
+    event_iou: float = float("nan")
 
     @property
     def evaluated(self) -> bool:
@@ -179,6 +205,8 @@ def evaluate_evimo(
         labels = np.asarray(segmentation.labels)
         hull = predicted_mask(segmentation.warped_xy, labels, sequence.sensor_size, min_count)
         is_imo = (labels >= 0) & (labels != background_cluster(labels))
+        occupied = np.zeros(sequence.sensor_size, dtype=bool)
+        occupied[window["y"], window["x"]] = True
         results.append(
             FrameResult(
                 float(t_s),
@@ -189,6 +217,9 @@ def evaluate_evimo(
                 int(np.count_nonzero(hull)),
                 mask_iou(hull, gt),
                 event_wise_iou(window, is_imo, gt),
+                miou=mean_iou(hull, gt),
+                piou=event_pixel_iou(hull, gt, occupied),
+                event_iou=event_iou(is_imo, window, gt),
             )
         )
     return results
@@ -200,12 +231,18 @@ def summarize_evimo(results: list[FrameResult]) -> dict:
     Returns:
         A flat, JSON-ready dict: ``frames``, ``evaluated``, ``empty_gt``, ``too_few_events``,
         ``convex_hull_iou`` and ``event_wise_iou`` (means in [0, 1], NaN without evaluated frames; the
-        event-wise mean skips frames where it is undefined, counted in ``event_wise_frames``) and the
-        two definitions as ``convex_hull_iou_definition`` and ``event_wise_iou_definition``.
+        event-wise mean skips frames where it is undefined, counted in ``event_wise_frames``), the
+        learned maskers' ``miou``, ``piou`` and ``sr_at_0_5``, and ``event_iou`` (means over the
+        evaluated frames where each is defined), and each definition as ``<name>_definition``.
     """
     evaluated = [r for r in results if r.evaluated]
     hull = [r.convex_hull_iou for r in evaluated]
     event = [r.event_wise_iou for r in evaluated if not np.isnan(r.event_wise_iou)]
+
+    def mean(name: str) -> float:
+        values = [getattr(r, name) for r in evaluated if not np.isnan(getattr(r, name))]
+        return float(np.mean(values)) if values else float("nan")
+
     return {
         "frames": len(results),
         "evaluated": len(evaluated),
@@ -214,6 +251,14 @@ def summarize_evimo(results: list[FrameResult]) -> dict:
         "convex_hull_iou": float(np.mean(hull)) if hull else float("nan"),
         "event_wise_iou": float(np.mean(event)) if event else float("nan"),
         "event_wise_frames": len(event),
+        "miou": mean("miou"),
+        "piou": mean("piou"),
+        "sr_at_0_5": success_rate(hull),
+        "event_iou": mean("event_iou"),
         "convex_hull_iou_definition": CONVEX_HULL_IOU,
         "event_wise_iou_definition": EVENT_WISE_IOU,
+        "miou_definition": MIOU,
+        "piou_definition": PIOU,
+        "sr_at_0_5_definition": SR_AT_05,
+        "event_iou_definition": EVENT_IOU,
     }

@@ -10,7 +10,15 @@ whatever label they get. Per window:
 * ``iou``: per moving object, event-set IoU with its matched cluster (0 when unmatched); mean over objects;
 * ``detection``: fraction of moving objects whose matched cluster's events have a bounding box (2nd–98th
   percentile of x and y) with IoU > 0.5 against the box of the object's own events (same percentiles);
-* ``count_error``: predicted clusters minus true layers (background included).
+* ``count_error``: predicted clusters minus true layers (background included);
+* the dynamic-class metrics of learned maskers (:mod:`evseg_torch.metrics`), on the scored events:
+  events are *dynamic* in truth when their layer is > 0, and predicted dynamic when off the background
+  (the cascade: any cluster but the largest, the background rule of :mod:`.evimo`; another method's
+  predictions: a label > 0, as in EV-IMO masks and binary dynamic masks). ``dynamic_iou`` is the event
+  IoU of the dynamic class, ``miou`` the mean of the dynamic and background event IoUs, ``piou`` the IoU
+  of the pixels holding predicted-dynamic events and those holding truly dynamic events (per-event ground
+  truth has no dense mask, so only pixels with events count, as in pIoU); :func:`summarize_dynamic`
+  adds ``sr_at_0_5``, the fraction of files whose ``dynamic_iou`` is at least 0.5.
 
 :func:`evaluate_labelled` segments each file as one window with
 :class:`~evseg_torch.pipeline.CascadedSegmenter` and scores it (``evseg evaluate labelled``);
@@ -27,11 +35,20 @@ import numpy as np
 
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.errors import EventFormatError, ReaderError, ShapeError
+from evseg_torch.evaluation.evimo import background_cluster
 from evseg_torch.events import check_sensor_size
 from evseg_torch.io import load_events, read_sensor_size
 from evseg_torch.io.guard import existing_file, reading
 from evseg_torch.io.numpy_files import WHAT_NPZ, open_npz
-from evseg_torch.metrics import box_iou, labelling_accuracy, match_clusters, per_object_iou
+from evseg_torch.metrics import (
+    box_iou,
+    labelling_accuracy,
+    mask_iou,
+    match_clusters,
+    mean_iou,
+    per_object_iou,
+    success_rate,
+)
 from evseg_torch.pipeline import CascadedSegmenter
 
 __all__ = [
@@ -41,6 +58,7 @@ __all__ = [
     "percentile_box",
     "score_events",
     "score_labelling",
+    "summarize_dynamic",
 ]
 
 _NOISE = -1
@@ -54,7 +72,8 @@ class LabelledScore:
     """Scores of one labelled window (see the module docstring for the definitions).
 
     ``method`` names what labelled the events: ``"evseg"`` for the cascade, else the scored predictions'
-    method; ``time_ms`` is NaN when the labelling's time is not known.
+    method; ``time_ms`` is NaN when the labelling's time is not known. ``dynamic_iou``, ``miou`` and
+    ``piou`` are the dynamic-class metrics (module docstring), NaN where undefined.
     """
 
     name: str
@@ -66,6 +85,9 @@ class LabelledScore:
     count_error: int
     time_ms: float = float("nan")
     method: str = "evseg"
+    dynamic_iou: float = float("nan")
+    miou: float = float("nan")
+    piou: float = float("nan")
 
 
 def percentile_box(xy: np.ndarray) -> np.ndarray:
@@ -86,6 +108,7 @@ def score_labelling(
     name: str = "",
     time_ms: float = float("nan"),
     method: str = "evseg",
+    dynamic: np.ndarray | None = None,
 ) -> LabelledScore:
     """Score predicted clusters against true layers.
 
@@ -96,6 +119,8 @@ def score_labelling(
         ignore: events left out of every metric, bool :math:`(N,)`; ``None`` for none.
         n_layers: true layers including the background (default: the distinct labels >= 0 of ``gt``).
         name, time_ms, method: copied into the score.
+        dynamic: whether each event is predicted dynamic, bool :math:`(N,)`; default: off the largest
+            cluster (the background rule).
 
     Returns:
         :class:`LabelledScore`.
@@ -130,6 +155,13 @@ def score_labelling(
         for layer in objects
     ]
     clusters = len(np.unique(pred[pred >= 0]))
+    if dynamic is None:
+        dynamic = (pred >= 0) & (pred != background_cluster(pred))
+    dynamic = np.asarray(dynamic, dtype=bool)
+    if dynamic.shape != gt.shape:
+        raise ShapeError(f"dynamic must be ({len(gt)},), one flag per event, got {dynamic.shape}")
+    kept = scored != _NOISE
+    pred_dynamic, gt_dynamic = dynamic[kept], scored[kept] > 0
     return LabelledScore(
         name=name,
         n_events=len(gt),
@@ -140,7 +172,37 @@ def score_labelling(
         count_error=int(clusters - n_layers),
         time_ms=float(time_ms),
         method=method,
+        dynamic_iou=mask_iou(pred_dynamic, gt_dynamic),
+        miou=mean_iou(pred_dynamic, gt_dynamic),
+        piou=_pixel_iou(xy[kept], pred_dynamic, gt_dynamic),
     )
+
+
+def summarize_dynamic(scores) -> dict[str, float]:
+    """Means over files of ``dynamic_iou``, ``miou`` and ``piou`` (NaN files left out), and ``sr_at_0_5``.
+
+    Returns:
+        ``{"dynamic_iou", "miou", "piou", "sr_at_0_5"}``, each NaN when no file defines it.
+    """
+
+    def mean(name: str) -> float:
+        values = [getattr(s, name) for s in scores if not np.isnan(getattr(s, name))]
+        return float(np.mean(values)) if values else float("nan")
+
+    return {
+        "dynamic_iou": mean("dynamic_iou"),
+        "miou": mean("miou"),
+        "piou": mean("piou"),
+        "sr_at_0_5": success_rate([s.dynamic_iou for s in scores]),
+    }
+
+
+def _pixel_iou(xy: np.ndarray, pred_dynamic: np.ndarray, gt_dynamic: np.ndarray) -> float:
+    """IoU of the pixels holding predicted-dynamic events and those holding truly dynamic events."""
+    pixels = np.unique(np.rint(xy).astype(np.int64), axis=0, return_inverse=True)[1].ravel()
+    predicted, truth = np.unique(pixels[pred_dynamic]), np.unique(pixels[gt_dynamic])
+    union = len(np.union1d(predicted, truth))
+    return len(np.intersect1d(predicted, truth)) / union if union else float("nan")
 
 
 def score_events(
@@ -152,6 +214,7 @@ def score_events(
     name: str = "",
     time_ms: float = float("nan"),
     method: str = "evseg",
+    dynamic: np.ndarray | None = None,
 ) -> LabelledScore:
     """Score a labelling of a labelled file's events, as :func:`load_labelled` returns them.
 
@@ -160,12 +223,15 @@ def score_events(
         events: canonical events :math:`(N,)`; their ``x`` and ``y`` place the detection boxes.
         labels, ignore: the file's true layers :math:`(N,)` and ignore mask :math:`(N,)` or ``None``.
         name, time_ms, method: copied into the score.
+        dynamic: as in :func:`score_labelling`.
 
     Returns:
         :class:`LabelledScore`.
     """
     xy = np.column_stack([events["x"], events["y"]])
-    return score_labelling(pred, labels, xy, ignore=ignore, name=name, time_ms=time_ms, method=method)
+    return score_labelling(
+        pred, labels, xy, ignore=ignore, name=name, time_ms=time_ms, method=method, dynamic=dynamic
+    )
 
 
 def load_labelled(

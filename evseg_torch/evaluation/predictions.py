@@ -16,8 +16,10 @@ on the same labelled files, with the same ignore mask and metrics (``evseg evalu
 A negative label or mask id means "no cluster" (an outlier), as in
 :func:`~evseg_torch.evaluation.labelled.score_labelling`: such an event is wrong for the accuracy,
 outside every cluster for the IoU and the boxes, and no cluster for the count error. Only the partition
-of the events matters to the metrics, so ids are arbitrary integers: an EV-IMO mask's ``id * 1000``
-values score the same as the ids themselves.
+of the events matters to the clustering metrics, so ids are arbitrary integers: an EV-IMO mask's
+``id * 1000`` values score the same as the ids themselves. The dynamic-class metrics of learned maskers
+(``dynamic_iou``, ``miou``, ``piou``, ``sr_at_0_5``; see :mod:`.labelled`) read a label > 0 as dynamic
+and 0 or below as background, the convention of EV-IMO masks and of binary dynamic masks.
 """
 
 from __future__ import annotations
@@ -237,7 +239,11 @@ def evaluate_predictions(
             path, sensor_size, label_field=label_field, ignore_field=ignore_field
         )
         predicted = load_predictions(prediction, events, size, field=prediction_field)
-        scores.append(score_events(predicted, events, labels, ignore, name=Path(path).stem, method=method))
+        scores.append(
+            score_events(
+                predicted, events, labels, ignore, name=Path(path).stem, method=method, dynamic=predicted > 0
+            )
+        )
     return scores
 
 

@@ -14,29 +14,19 @@ import aedat
 import numpy as np
 
 from evseg_torch.errors import ReaderError
+from evseg_torch.io.packets import concatenate, regroup
 
 WHAT = "AEDAT 4 file"
 
 
 def read(path: Path) -> np.ndarray:
     """All events of the first event stream, as one structured array."""
-    return _concatenate(list(_packets(path)))
+    return concatenate(_packets(path))
 
 
 def chunks(path: Path, chunk_size: int) -> Iterator[np.ndarray]:
     """Consecutive blocks of at most ``chunk_size`` events, regrouped from the decoder's packets."""
-    pending, count = [], 0
-    for packet in _packets(path):
-        pending.append(packet)
-        count += len(packet)
-        if count >= chunk_size:
-            merged = _concatenate(pending)
-            full = count - count % chunk_size
-            for begin in range(0, full, chunk_size):
-                yield merged[begin : begin + chunk_size]
-            pending, count = [merged[full:]], count - full
-    if count:
-        yield _concatenate(pending)
+    return regroup(_packets(path), chunk_size)
 
 
 def sensor_size(path: Path) -> tuple[int, int]:
@@ -59,9 +49,3 @@ def _event_stream(decoder) -> tuple[int, dict]:
         raise ReaderError("the file holds no event stream")
     first = min(streams)
     return first, streams[first]
-
-
-def _concatenate(arrays: list[np.ndarray]) -> np.ndarray:
-    if not arrays:
-        raise ReaderError("the event stream holds no events")
-    return np.concatenate(arrays)

@@ -1,20 +1,27 @@
-"""Load event files of any supported format, chosen by the file's suffix.
+"""Load event recordings of any supported format, chosen by the file's suffix or the folder's contents.
 
-==============  ====================================================  =============================
-suffix          format                                                sensor size stored
-==============  ====================================================  =============================
-``.txt``        text ``t x y p`` (rpg / ECD / EED), see :mod:`.text`   no
-``.npy``        (N, 4) seconds or structured µs, see                  no
-                :mod:`.numpy_files`
-``.npz``        pydvs / EV-IMO, EED/ECD columns, CeleX                width/height, EV-IMO mask
-``.h5 .hdf5``   event_utils or DSEC, see :mod:`.hdf5`                 event_utils sensor_resolution
-``.aedat4``     iniVation AEDAT 4, see :mod:`.aedat4`                 yes
-``.aedat``      jAER AEDAT 2.0 from a DVS128, see :mod:`.aedat2`      yes (128 x 128)
-==============  ====================================================  =============================
+=====================  ===================================================  ==============================
+input                  format                                               sensor size stored
+=====================  ===================================================  ==============================
+``.txt``               text ``t x y p`` (rpg / ECD / EED), see :mod:`.text`  no
+``.npy``               (N, 4) seconds or structured µs, see                 no
+                       :mod:`.numpy_files`
+``.npz``               pydvs / EV-IMO, EED/ECD columns, CeleX               width/height, EV-IMO mask
+``.h5 .hdf5``          event_utils or DSEC, see :mod:`.hdf5`                event_utils sensor_resolution
+``.aedat4``            iniVation AEDAT 4, see :mod:`.aedat4`                yes
+``.aedat``             jAER AEDAT 2.0 from a DVS128, see :mod:`.aedat2`     yes (128 x 128)
+``.bag``               ROS 1 bag of event arrays, see :mod:`.rosbag`        message height/width
+``.raw .dat``          Prophesee EVT 2.0/3.0 RAW or DAT, see                header geometry or camera
+                       :mod:`.prophesee_raw`
+ROS 2 bag folder       folder with ``metadata.yaml``, see :mod:`.rosbag`    message height/width
+EVIMO2v2 folder        ``dataset_events_*.npy`` ..., see :mod:`.evimo2`     mask image size
+=====================  ===================================================  ==============================
 
 Events come back in the canonical form of :func:`evseg_torch.events.as_events`. When the caller
 gives no ``sensor_size``, events are checked against the size the file stores, so that
-``load_events(path)`` always fits in :func:`read_sensor_size`'s ``(H, W)``.
+``load_events(path)`` always fits in :func:`read_sensor_size`'s ``(H, W)``. :func:`reader_for` names
+the reader of a path without reading any events. Reader options (``topic``, for ROS bags) reach only
+the formats that take them; giving one to another format is a :class:`ConfigError`.
 """
 
 from __future__ import annotations
@@ -27,18 +34,22 @@ import numpy as np
 
 from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
 from evseg_torch.events import as_events, check_sensor_size, infer_sensor_size
-from evseg_torch.io import aedat2, aedat4, hdf5, numpy_files, text
+from evseg_torch.io import aedat2, aedat4, evimo2, hdf5, numpy_files, prophesee_raw, rosbag, text
 from evseg_torch.io.guard import existing_file, reading
 
 
 class _Format(NamedTuple):
     what: str
-    read: Callable[[Path], np.ndarray]
-    chunks: Callable[[Path, int], Iterator[np.ndarray]]
-    sensor_size: Callable[[Path], tuple[int, int] | None]
+    read: Callable[..., np.ndarray]
+    chunks: Callable[..., Iterator[np.ndarray]]
+    sensor_size: Callable[..., tuple[int, int] | None]
+    options: tuple[str, ...] = ()
 
 
 _HDF5 = _Format(hdf5.WHAT, hdf5.read, hdf5.chunks, hdf5.sensor_size)
+_ROSBAG = _Format(rosbag.WHAT, rosbag.read, rosbag.chunks, rosbag.sensor_size, ("topic",))
+_PROPHESEE = _Format(prophesee_raw.WHAT, prophesee_raw.read, prophesee_raw.chunks, prophesee_raw.sensor_size)
+_EVIMO2 = _Format(evimo2.WHAT, evimo2.read, evimo2.chunks, evimo2.sensor_size)
 
 _FORMATS = {
     ".txt": _Format(text.WHAT, text.read, text.chunks, text.sensor_size),
@@ -52,27 +63,34 @@ _FORMATS = {
     ".hdf5": _HDF5,
     ".aedat4": _Format(aedat4.WHAT, aedat4.read, aedat4.chunks, aedat4.sensor_size),
     ".aedat": _Format(aedat2.WHAT, aedat2.read, aedat2.chunks, aedat2.sensor_size),
+    ".bag": _ROSBAG,
+    ".raw": _PROPHESEE,
+    ".dat": _PROPHESEE,
 }
 
 SUPPORTED_SUFFIXES = tuple(_FORMATS)
+SUPPORTED_FOLDERS = ("EVIMO2v2 sequence (dataset_events_t/xy/p.npy)", "ROS 2 bag (metadata.yaml)")
 
 
-def load_events(path, *, sensor_size: tuple[int, int] | None = None) -> np.ndarray:
-    """Read a whole event file.
+def load_events(path, *, sensor_size: tuple[int, int] | None = None, topic: str | None = None) -> np.ndarray:
+    """Read a whole recording.
 
     Args:
-        path: the file; its suffix (see the module table) chooses the reader.
+        path: the file or folder; its suffix or contents (see the module table) choose the reader.
         sensor_size: ``(H, W)`` every event must lie inside; defaults to the size the file stores,
             or no check when it stores none.
+        topic: for a ROS bag, the topic of event arrays to read (default: the first in name order).
 
     Returns:
         Canonical events, a structured array :math:`(N,)` of dtype
         :data:`~evseg_torch.events.EVENT_DTYPE` with ``t`` in µs in the file's own time base.
 
     Raises:
-        ReaderError: the file is missing, has an unknown suffix, or is corrupt or truncated.
+        ReaderError: the file is missing, has an unknown suffix, is a folder of no known layout, or is
+            corrupt or truncated.
         EventFormatError: the events parse but are invalid, e.g. timestamps decrease or an event
             lies outside the sensor; the message starts with the path.
+        ConfigError: ``topic`` is given for a format other than a ROS bag, or names no event topic.
 
     Examples:
         >>> events = load_events("events.txt")  # doctest: +SKIP
@@ -80,47 +98,54 @@ def load_events(path, *, sensor_size: tuple[int, int] | None = None) -> np.ndarr
         array([1519689694766017, 1519689694766018])
     """
     path, fmt = _resolve(path)
+    options = _options(path, fmt, topic=topic)
     with reading(path, fmt.what):
-        size = sensor_size if sensor_size is not None else fmt.sensor_size(path)
-        return as_events(fmt.read(path), size)
+        size = sensor_size if sensor_size is not None else fmt.sensor_size(path, **options)
+        return as_events(fmt.read(path, **options), size)
 
 
 def iter_event_chunks(
-    path, chunk_size: int = 1_000_000, *, sensor_size: tuple[int, int] | None = None
+    path,
+    chunk_size: int = 1_000_000,
+    *,
+    sensor_size: tuple[int, int] | None = None,
+    topic: str | None = None,
 ) -> Iterator[np.ndarray]:
-    """Stream an event file in consecutive canonical chunks, for recordings larger than memory.
+    """Stream a recording in consecutive canonical chunks, for recordings larger than memory.
 
     Every format streams from disk except ``.npz``, whose members are loaded whole (zip members
     cannot be memory-mapped) and then cut. The concatenated chunks equal :func:`load_events`.
 
     Args:
-        path: the file; its suffix chooses the reader.
+        path: the file or folder; its suffix or contents choose the reader.
         chunk_size: the most events per chunk; each chunk is non-empty and, except the last, usually
             full (a text chunk is one block of ``chunk_size`` lines, less its comment lines).
-        sensor_size: as in :func:`load_events`.
+        sensor_size, topic: as in :func:`load_events`.
 
     Yields:
         Canonical event arrays, in file order, with timestamps non-decreasing across chunks.
 
     Raises:
-        ConfigError: ``chunk_size`` is not a positive integer (raised at once).
-        ReaderError: missing file or unknown suffix (raised at once); corrupt or truncated content
+        ConfigError: ``chunk_size`` is not a positive integer, or ``topic`` is given for a format
+            other than a ROS bag (raised at once).
+        ReaderError: missing file or unknown format (raised at once); corrupt or truncated content
             (raised when the bad chunk is reached).
         EventFormatError: as in :func:`load_events`, raised when the bad chunk is reached.
     """
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int | np.integer) or chunk_size <= 0:
         raise ConfigError(f"chunk_size must be a positive integer, got {chunk_size!r}")
     path, fmt = _resolve(path)
-    return _validated_chunks(path, fmt, int(chunk_size), sensor_size)
+    options = _options(path, fmt, topic=topic)
+    return _validated_chunks(path, fmt, int(chunk_size), sensor_size, options)
 
 
 def _validated_chunks(
-    path: Path, fmt: _Format, chunk_size: int, sensor_size: tuple[int, int] | None
+    path: Path, fmt: _Format, chunk_size: int, sensor_size: tuple[int, int] | None, options: dict
 ) -> Iterator[np.ndarray]:
     with reading(path, fmt.what):
-        size = sensor_size if sensor_size is not None else fmt.sensor_size(path)
+        size = sensor_size if sensor_size is not None else fmt.sensor_size(path, **options)
         start, last_t = 0, None
-        for raw in fmt.chunks(path, chunk_size):
+        for raw in fmt.chunks(path, chunk_size, **options):
             try:
                 events = as_events(raw, size)
             except EventFormatError as err:
@@ -135,14 +160,16 @@ def _validated_chunks(
             raise EventFormatError("no events: the file holds 0 events")
 
 
-def read_sensor_size(path) -> tuple[int, int] | None:
+def read_sensor_size(path, *, topic: str | None = None) -> tuple[int, int] | None:
     """The sensor size ``(H, W)`` the file stores, or ``None`` when its format stores none.
 
-    Only headers and metadata are read, never the events.
+    Only headers and metadata are read, never the events (a ROS bag's first message is decoded).
+    ``topic`` as in :func:`load_events`.
     """
     path, fmt = _resolve(path)
+    options = _options(path, fmt, topic=topic)
     with reading(path, fmt.what):
-        size = fmt.sensor_size(path)
+        size = fmt.sensor_size(path, **options)
     if size is None:
         return None
     try:
@@ -151,7 +178,9 @@ def read_sensor_size(path) -> tuple[int, int] | None:
         raise ReaderError(f"{path}: the stored sensor size is invalid: {err}") from None
 
 
-def resolve_sensor_size(path, given: tuple[int, int] | None = None) -> tuple[int, int] | None:
+def resolve_sensor_size(
+    path, given: tuple[int, int] | None = None, *, topic: str | None = None
+) -> tuple[int, int] | None:
     """The sensor size to read ``path`` with, by the one rule of evseg_torch.
 
     The size the file stores wins; a size given as well must equal it. When the file stores none, the
@@ -160,11 +189,11 @@ def resolve_sensor_size(path, given: tuple[int, int] | None = None) -> tuple[int
 
     Raises:
         EventFormatError: ``given`` is not a valid size, or differs from the stored one.
-        ReaderError: as :func:`read_sensor_size`.
+        ReaderError, ConfigError: as :func:`read_sensor_size` (``topic`` likewise).
     """
     if given is not None:
         given = check_sensor_size(given)
-    stored = read_sensor_size(path)
+    stored = read_sensor_size(path, topic=topic)
     if given is not None and stored is not None and given != stored:
         raise EventFormatError(
             f"{path}: the file stores a {stored[0]}x{stored[1]} sensor but {given[0]}x{given[1]} was given; "
@@ -173,21 +202,61 @@ def resolve_sensor_size(path, given: tuple[int, int] | None = None) -> tuple[int
     return stored or given
 
 
-def scan_sensor_size(path, chunk_size: int = 1_000_000) -> tuple[int, int]:
+def scan_sensor_size(path, chunk_size: int = 1_000_000, *, topic: str | None = None) -> tuple[int, int]:
     """The smallest sensor size ``(max y + 1, max x + 1)`` that holds the events of ``path`` (one pass).
 
     Raises:
         ReaderError, EventFormatError: as :func:`iter_event_chunks`.
     """
-    sizes = [infer_sensor_size(chunk) for chunk in iter_event_chunks(path, chunk_size)]
+    sizes = [infer_sensor_size(chunk) for chunk in iter_event_chunks(path, chunk_size, topic=topic)]
     return tuple(int(v) for v in np.max(sizes, axis=0))
+
+
+def reader_for(path) -> str:
+    """The kind of recording at ``path``, as its reader names it, without reading any events.
+
+    For a caller (such as the command line) that checks its inputs before reading them.
+
+    Args:
+        path: a file, chosen by its suffix, or a folder, chosen by its contents.
+
+    Returns:
+        The reader's description, e.g. ``"ROS bag"`` or ``"EVIMO2v2 sequence folder"``.
+
+    Raises:
+        ReaderError: the path does not exist, has an unknown suffix, or is a folder of no known
+            layout; the one-line message names the path and what is supported.
+
+    Examples:
+        >>> reader_for("recording.bag")  # doctest: +SKIP
+        'ROS bag'
+    """
+    return _resolve(path)[1].what
 
 
 def _resolve(path) -> tuple[Path, _Format]:
     path = Path(path)
+    if path.is_dir():
+        if evimo2.is_sequence(path):
+            return path, _EVIMO2
+        if rosbag.is_ros2_bag(path):
+            return path, _ROSBAG
+        raise ReaderError(
+            f"{path}: a folder of no known layout; supported folders: {'; '.join(SUPPORTED_FOLDERS)}"
+        )
     fmt = _FORMATS.get(path.suffix.lower())
     if fmt is None:
         raise ReaderError(
-            f"{path}: unknown event file suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}"
+            f"{path}: unknown event file suffix {path.suffix!r}; supported: {', '.join(SUPPORTED_SUFFIXES)} "
+            f"and folders: {'; '.join(SUPPORTED_FOLDERS)}"
         )
     return existing_file(path), fmt
+
+
+def _options(path: Path, fmt: _Format, **given) -> dict:
+    """The reader options that were given, checked to be ones ``fmt`` takes."""
+    options = {name: value for name, value in given.items() if value is not None}
+    refused = [name for name in options if name not in fmt.options]
+    if refused:
+        raise ConfigError(f"{path}: {', '.join(refused)} applies to ROS bags only, not to a {fmt.what}")
+    return options

@@ -50,12 +50,21 @@ def read_npy(path: Path) -> np.ndarray:
 
 
 def chunks_npy(path: Path, chunk_size: int) -> Iterator[np.ndarray]:
-    """Consecutive slices of at most ``chunk_size`` events, each read from the file on its own.
+    """Consecutive slices of at most ``chunk_size`` events, each read from the file on its own."""
+    return npy_row_blocks(path, _open_npy(path), chunk_size)
+
+
+def npy_row_blocks(path: Path, data: np.ndarray, chunk_size: int) -> Iterator[np.ndarray]:
+    """Consecutive blocks of at most ``chunk_size`` rows of an ``.npy`` file, each read on its own.
 
     Plain reads rather than slices of a memory map: the pages of a map stay resident once touched, so
     a long recording's resident memory would grow with its length.
+
+    Args:
+        path: the ``.npy`` file.
+        data: the file memory-mapped (``np.load(path, mmap_mode="r")``), for its shape, dtype and offset.
+        chunk_size: rows per block.
     """
-    data = _open_npy(path)
     if not data.flags.c_contiguous:
         for begin in range(0, len(data), chunk_size):
             yield np.array(data[begin : begin + chunk_size])

@@ -203,6 +203,9 @@ def test_evaluate_sequence_windows_from_the_config(monkeypatch):
         def __init__(self, sensor_size, config):
             built.append((sensor_size, config))
 
+        def to(self, device):
+            return self
+
         def __call__(self, window, t_ref):
             seen.append((len(window), t_ref))
             return _segmentation(np.zeros((len(window), 2)), np.zeros(len(window)))

@@ -78,11 +78,15 @@ class TestProtocol:
             assert result.event_wise_iou > 0.8
         summary = summarize_evimo(results)
         assert summary["convex_hull_iou"] > 0.9 and summary["event_wise_iou"] > 0.8
+        assert summary["sr_at_0_5"] == 1.0 and summary["miou"] > 0.9 and summary["event_iou"] > 0.8
 
     def test_all_background_scores_zero(self, sequence):
         results = evaluate_evimo(_all_background, sequence, window_ms=10, min_events=100)
         assert all(r.evaluated and r.predicted_pixels == 0 for r in results)
         assert all(r.convex_hull_iou == 0.0 and r.event_wise_iou == 0.0 for r in results)
+        assert all(r.piou == r.event_iou == 0.0 and 0.0 < r.miou < 0.5 for r in results)
+        summary = summarize_evimo(results)
+        assert summary["sr_at_0_5"] == 0.0 and summary["event_iou"] == 0.0
 
     def test_hand_made_exact(self, tmp_path):
         # A static 20 x 10 box: three events on every pixel of its outline, many more on the background.
@@ -118,6 +122,7 @@ class TestProtocol:
         assert result.gt_pixels == result.predicted_pixels == 200
         assert result.convex_hull_iou == 1.0
         assert result.event_wise_iou == 1.0
+        assert result.miou == result.piou == result.event_iou == 1.0
 
     def test_skipped_frames(self, scene, tmp_path):
         masks = np.stack([scene.masks_at(0.03)[0], np.zeros(SIZE, bool), scene.masks_at(0.03)[0]])

@@ -171,6 +171,9 @@ def test_evaluate_labelled_segments_each_file(tmp_path, monkeypatch):
         def __init__(self, sensor_size, config):
             built.append(sensor_size)
 
+        def to(self, device):
+            return self
+
         def __call__(self, events):
             labels = np.array([0, 0, 1, 1, 1, 0])
             return SimpleNamespace(labels=labels, timings_ms={"total": 7.0})
@@ -205,6 +208,9 @@ def test_evaluate_labelled_names_the_method(tmp_path, monkeypatch):
         def __init__(self, sensor_size, config):
             pass
 
+        def to(self, device):
+            return self
+
         def __call__(self, events):
             return SimpleNamespace(labels=np.zeros(len(events), dtype=int), timings_ms={"total": 1.0})
 
@@ -212,3 +218,33 @@ def test_evaluate_labelled_names_the_method(tmp_path, monkeypatch):
     path = _write(tmp_path / "a.npz")
     assert evaluate_labelled([path])[0].method == "evseg"
     assert evaluate_labelled([path], method="evseg-fast")[0].method == "evseg-fast"
+
+
+class TestDynamicClass:
+    def test_hand_computed(self):
+        gt = np.array([0, 0, 0, 1, 1, -1])
+        pred = np.array([0, 0, 1, 1, 1, 1])
+        xy = np.array([[0, 0], [1, 0], [2, 0], [3, 0], [3, 0], [4, 0]], dtype=np.float64)
+        score = score_labelling(pred, gt, xy, dynamic=pred > 0)
+        # Noise (event 5) left out. Dynamic events: predicted {2, 3, 4}, true {3, 4}: IoU 2/3;
+        # background {0, 1} vs {0, 1, 2}: 2/3. Pixels: predicted {(2,0), (3,0)}, true {(3,0)}: 1/2.
+        assert score.dynamic_iou == pytest.approx(2 / 3) and score.miou == pytest.approx(2 / 3)
+        assert score.piou == 0.5
+
+    def test_background_rule_by_default(self):
+        gt = np.array([0, 0, 0, 1, 1, 0])
+        pred = np.array([5, 5, 5, 7, 7, -1])  # cluster 5 is the largest: the background
+        xy = np.column_stack([np.arange(6), np.zeros(6)])
+        score = score_labelling(pred, gt, xy)
+        assert (score.dynamic_iou, score.miou, score.piou) == (1.0, 1.0, 1.0)
+        with pytest.raises(ShapeError, match="one flag per event"):
+            score_labelling(pred, gt, xy, dynamic=np.ones(2, dtype=bool))
+
+    def test_summary(self):
+        scores = [
+            LabelledScore("a", 1, 1, 1.0, 1.0, 1.0, 0, dynamic_iou=0.4, miou=0.6, piou=0.5),
+            LabelledScore("b", 1, 1, 1.0, 1.0, 1.0, 0, dynamic_iou=0.6, miou=0.8, piou=float("nan")),
+        ]
+        summary = labelled.summarize_dynamic(scores)
+        assert summary["dynamic_iou"] == pytest.approx(0.5) and summary["miou"] == pytest.approx(0.7)
+        assert summary["piou"] == 0.5 and summary["sr_at_0_5"] == 0.5

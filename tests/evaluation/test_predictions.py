@@ -255,3 +255,16 @@ class TestProbeScenes:
         direct = labels_from_masks(events, masks, times_us)
         expected = score_events(direct, events, labels, ignore)
         assert (score.accuracy, score.iou) == (expected.accuracy, expected.iou)
+
+
+def test_dynamic_class_metrics_read_labels_above_zero_as_dynamic(tmp_path):
+    path = _labelled(tmp_path / "first.npz")
+    binary, ids = tmp_path / "binary.npy", tmp_path / "ids.npy"
+    np.save(binary, np.array([0, 0, 1, 1, 1, 0]))  # a binary dynamic mask's labels: exact
+    np.save(ids, np.array([5, 5, 7, 7, 7, 5]))  # every label > 0: every event dynamic
+    (exact,) = evaluate_predictions([path], [binary])
+    assert (exact.dynamic_iou, exact.miou, exact.piou) == (1.0, 1.0, 1.0)
+    (all_dynamic,) = evaluate_predictions([path], [ids])
+    # Scored events 0, 2, 3, 5 (truth: background, object, object, background), each on its own pixel.
+    assert (all_dynamic.dynamic_iou, all_dynamic.miou, all_dynamic.piou) == (0.5, 0.25, 0.5)
+    assert all_dynamic.accuracy == exact.accuracy == 1.0  # the partition is right either way

@@ -86,13 +86,13 @@ class TestErrors:
         with pytest.raises(ReaderError, match=r"absent\.txt: no such file"):
             load_events(tmp_path / "absent.txt")
 
-    def test_directory(self, tmp_path):
+    def test_folder_of_no_known_layout(self, tmp_path):
         folder = tmp_path / "folder.npz"
         folder.mkdir()
-        with pytest.raises(ReaderError, match="not a regular file"):
+        with pytest.raises(ReaderError, match="folder of no known layout; supported folders: EVIMO2v2"):
             load_events(folder)
 
-    @pytest.mark.parametrize("name", ["events.csv", "events", "events.bag"])
+    @pytest.mark.parametrize("name", ["events.csv", "events", "events.mcap"])
     def test_unknown_suffix(self, tmp_path, name):
         path = tmp_path / name
         path.write_text("0 1 2 1\n")
