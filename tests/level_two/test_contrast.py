@@ -333,6 +333,8 @@ class TestContrastMaximization:
             cmax(events, torch.zeros(2, 4, dtype=torch.float64), torch.ones(20, dtype=torch.float64))
         with pytest.raises(ConfigError, match="optimizer must be 'lbfgs' or 'adam'"):
             ContrastMaximization(model, optimizer="sgd")
+        with pytest.raises(ConfigError, match="max_iter must be an integer >= 1, got True"):
+            ContrastMaximization(model, max_iter=True)
         with pytest.raises(ConfigError, match="unknown contrast objective"):
             ContrastMaximization(model, objective="entropy")
 
