@@ -488,7 +488,10 @@ def _check_limits(value, limits, key: str) -> None:
     for element in value if isinstance(value, tuple) else (value,):
         if not all(holds(element, bound) for (_, holds), bound in bounds):
             wanted = " and ".join(f"{symbol} {bound:g}" for (symbol, _), bound in bounds)
-            raise ConfigError(f"config key {key!r} has invalid value {value!r}: expected a number {wanted}")
+            noun = "integer" if isinstance(element, int) else "number"
+            positive = {("above", 0), ("at_least", 1)} & set(limits.items())
+            kind = f"a positive {noun}" if positive else {"integer": "an integer", "number": "a number"}[noun]
+            raise ConfigError(f"config key {key!r} has invalid value {value!r}: expected {kind} {wanted}")
 
 
 def _plain(value):

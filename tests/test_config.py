@@ -115,7 +115,11 @@ def test_dataset_configs_list_only_their_overrides(name):
         (LevelTwoConfig, {"n_iter_segmentation": True}, "'level_two.n_iter_segmentation'"),
         (LevelTwoConfig, {"lambda_smooth": float("nan")}, "'level_two.lambda_smooth'.*finite"),
         (LevelTwoConfig, {"lambda_label": float("inf")}, "'level_two.lambda_label'.*finite"),
-        (LevelTwoConfig, {"lr": 0.0}, r"'level_two.lr' has invalid value 0.0: expected a number > 0"),
+        (
+            LevelTwoConfig,
+            {"lr": 0.0},
+            r"'level_two.lr' has invalid value 0.0: expected a positive number > 0",
+        ),
         (LevelTwoConfig, {"optimizer": "sgd"}, "'level_two.optimizer'.*'lbfgs', 'adam'"),
         (LevelTwoConfig, {"objective": "entropy"}, "'level_two.objective'.*'variance'"),
         (LevelTwoConfig, {"data_normalization": "max"}, "'level_two.data_normalization'"),

@@ -410,7 +410,8 @@ class GraphCutContrastSegmenter(nn.Module):
 
         Raises:
             EventFormatError: if ``events`` is not an EventBatch (or a list of them) or a window is empty.
-            ShapeError: if ``init_params`` or ``init_labels`` has the wrong shape or values.
+            ShapeError: if ``init_params`` or ``init_labels`` has the wrong shape, or labels out of range.
+            ModelError: if ``init_params`` hold NaN or inf.
         """
         if isinstance(events, EventBatch) and not events.is_batched:
             return self._segment(
