@@ -136,6 +136,21 @@ class FeatureConfig(_Section):
     both_images: bool = True
     guided_tracking: bool = True
 
+    def correspondence_settings(self) -> dict:
+        """The keywords of :func:`~evseg_torch.level_one.features.extract_correspondences` that this
+        section sets (``guided_tracking`` decides whether the pipeline also gives it the models)."""
+        return {
+            "sub_window": self.sub_window,
+            "max_corners": self.max_corners,
+            "min_distance": self.min_distance,
+            "quality_level": self.quality_level,
+            "sigma": self.corner_sigma,
+            "win_size": (self.lk_win_size, self.lk_win_size),
+            "max_level": self.lk_max_level,
+            "fb_threshold": self.fb_threshold,
+            "both_images": self.both_images,
+        }
+
 
 @dataclass(frozen=True)
 class LevelOneConfig(_Section):

@@ -343,21 +343,11 @@ class CascadedSegmenter(nn.Module):
             pool = given if replaced else np.zeros((0, self.motion.n_params))
             fitted = ProgressiveXResult(pool, np.zeros(0, dtype=np.int64), 0, 0)
             return tracks, fitted, 1e3 * (time.perf_counter() - start)
-        feats = cfg.features
+        guided = (
+            {"motion": self.motion, "initial_models": initial_models} if cfg.features.guided_tracking else {}
+        )
         tracks = extract_correspondences(
-            events,
-            self.sensor_size,
-            sub_window=feats.sub_window,
-            t_ref=t_ref_us,
-            max_corners=feats.max_corners,
-            min_distance=feats.min_distance,
-            quality_level=feats.quality_level,
-            sigma=feats.corner_sigma,
-            win_size=(feats.lk_win_size, feats.lk_win_size),
-            max_level=feats.lk_max_level,
-            fb_threshold=feats.fb_threshold,
-            both_images=feats.both_images,
-            **({"motion": self.motion, "initial_models": initial_models} if feats.guided_tracking else {}),
+            events, self.sensor_size, t_ref=t_ref_us, **cfg.features.correspondence_settings(), **guided
         )
         after_features = time.perf_counter()
         fitted = progressive_x(

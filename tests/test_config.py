@@ -21,6 +21,7 @@ from evseg_torch.config import (
 )
 from evseg_torch.errors import ConfigError
 from evseg_torch.events import EventBatch
+from evseg_torch.level_one.features import extract_correspondences
 from evseg_torch.level_one.progressive_x import progressive_x
 from evseg_torch.level_two.contrast import ContrastMaximization
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
@@ -175,6 +176,10 @@ def test_every_module_keyword_is_a_config_field():
     data = {"src", "dst", "dt", "model", "initial_models", "rng"}
     one = LevelOneConfig().progressive_x_settings()
     assert set(inspect.signature(progressive_x).parameters) - data == set(one)
+    # And every tuning keyword of the correspondences is a features field.
+    data = {"events", "sensor_size", "sub_window_ms", "t_ref", "motion", "initial_models"}
+    features = FeatureConfig().correspondence_settings()
+    assert set(inspect.signature(extract_correspondences).parameters) - data == set(features)
 
 
 def test_adam_from_yaml_runs_as_the_module_with_keywords(tmp_path):
