@@ -39,7 +39,7 @@ import torch
 from torch import Tensor, nn
 
 from evseg_torch.config import LevelTwoConfig
-from evseg_torch.errors import ConfigError, ShapeError
+from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.iwe import (
     _batch_of_one,
@@ -639,6 +639,8 @@ class ContrastMaximization(nn.Module):
 
     def forward(self, events: EventBatch, init_params: Tensor, weights: Tensor | None = None) -> Tensor:
         n_params = self.model.n_params
+        if not torch.isfinite(init_params).all():
+            raise ModelError("init_params hold NaN or inf: every model's parameters must be finite")
         if events.is_batched:
             _check_padded(events)
             n_windows, longest = events.t.shape
