@@ -6,7 +6,7 @@
 * synthetic: the project's synthetic benchmark over ``--seeds`` (as ``evseg evaluate synthetic``),
   the same columns;
 * EED ``what_is_background`` and ``occlusions`` from ``../shared/data/real`` (as ``evseg evaluate eed``,
-  from ``configs/eed.yaml``): detection rates (%) under IoU > 0.5, intersection over the GT box,
+  from the bundled ``eed.yaml``): detection rates (%) under IoU > 0.5, intersection over the GT box,
   over the predicted box, nested boxes, and the mean IoU.
 
 ``--config`` is the base of the first two sets, ``--eed-config`` of EED's; the ``--set`` overrides
@@ -25,7 +25,7 @@ import torch
 import yaml
 
 from evseg_torch.cli import _seed_range
-from evseg_torch.config import SegmenterConfig, load_config, replace_config
+from evseg_torch.config import SegmenterConfig, bundled_config, load_config, replace_config
 from evseg_torch.errors import EvsegError
 from evseg_torch.evaluation.eed import detection_rate, evaluate_sequence, load_eed_sequence
 from evseg_torch.evaluation.labelled import evaluate_labelled
@@ -102,8 +102,8 @@ def main() -> int:
     parser.add_argument(
         "--eed-config",
         type=Path,
-        default=ROOT / "configs" / "eed.yaml",
-        help="YAML config of the EED set (default: configs/eed.yaml)",
+        default=bundled_config("eed"),
+        help="YAML config of the EED set (default: the bundled eed.yaml)",
     )
     parser.add_argument(
         "--set",

@@ -78,7 +78,9 @@ def _parser() -> argparse.ArgumentParser:
     segment.add_argument("inputs", nargs="+", metavar="INPUT", help=f"event files ({_formats()})")
     segment.add_argument("--out", required=True, type=Path, help="output folder")
     segment.add_argument(
-        "--config", type=Path, help="YAML config (default: built-in defaults = configs/default.yaml)"
+        "--config",
+        type=Path,
+        help="YAML config (default: the built-in defaults, listed in configs/default.yaml)",
     )
     segment.add_argument(
         "--sensor-size",
@@ -212,9 +214,7 @@ def _parser() -> argparse.ArgumentParser:
         "and count the object as detected when the best non-background cluster's box has IoU > 0.5.",
     )
     eed.add_argument("folders", nargs="+", type=Path, metavar="FOLDER", help="EED sequence folders")
-    eed.add_argument(
-        "--config", type=Path, default=None, help="YAML config (default: configs/eed.yaml values)"
-    )
+    eed.add_argument("--config", type=Path, default=None, help="YAML config (default: the bundled eed.yaml)")
     eed.add_argument(
         "--window-ms", type=float, help="window length centred on each box (default from the config)"
     )
@@ -563,11 +563,11 @@ def _evaluate_synthetic(args) -> int:
 
 
 def _evaluate_eed(args) -> int:
-    from evseg_torch.config import load_config
+    from evseg_torch.config import bundled_config, load_config
     from evseg_torch.evaluation.eed import PAPER_TABLE_I, detection_rate, evaluate_sequence, load_eed_sequence
     from evseg_torch.viz import boxes_figure, render_labels, save_figure
 
-    config = load_config(args.config or _bundled_config("eed.yaml"))
+    config = load_config(args.config or bundled_config("eed"))
     window_ms = args.window_ms or config.window.window_ms
     reference = args.reference.replace("-", "_")
     compensated = "the box time" if reference == "box" else "the window's first event"
@@ -736,14 +736,6 @@ def _summary_line(summary: dict) -> str:
         f"cluster-count error {summary['count_error']:+.2f} (|.| {summary['abs_count_error']:.2f}), "
         f"median {summary['time_ms_median']:.0f} ms per window"
     )
-
-
-def _bundled_config(name: str) -> Path:
-    """A config shipped in the repository's configs/ folder (the package's defaults otherwise)."""
-    path = Path(__file__).resolve().parents[1] / "configs" / name
-    if not path.is_file():
-        raise EvsegError(f"config {name} not found next to the package; pass --config FILE")
-    return path
 
 
 def _write_json(path: Path | None, data) -> None:

@@ -1,27 +1,92 @@
 """Hyper-parameters as nested frozen dataclasses, loaded strictly from YAML.
 
-Every hyper-parameter of the pipeline is documented once, here. Names follow EMSGC (``lambda_smooth``,
-``lambda_label``, ``n_iter_segmentation``) and pyprogressivex (``threshold``, ``conf``,
-``minimum_point_number``). Field names are unique across sections, so a flat keyword such as
-``lambda_smooth=40`` names exactly one field (:func:`replace_config`). Unknown keys, in files or in
-keywords, are errors that name the key.
+Every hyper-parameter of the pipeline is defined once, here: its default, its documentation and its
+validation. Names follow EMSGC (``lambda_smooth``, ``lambda_label``, ``n_iter_segmentation``) and
+pyprogressivex (``threshold``, ``conf``, ``minimum_point_number``). Field names are unique across
+sections, so a flat keyword such as ``lambda_smooth=40`` names exactly one field (:func:`replace_config`).
+
+Each section validates itself when it is built (``__post_init__``), from YAML, from keywords or by
+:func:`dataclasses.replace`: a field's type (a bool is not an integer; a float must be finite), its range
+(``_setting``'s bounds) and its choices; an integer given for a float field becomes a float. Unknown keys,
+in files or in keywords, and invalid values are :class:`~evseg_torch.errors.ConfigError` naming the key.
+The modules take their settings from these sections
+(:meth:`~evseg_torch.level_two.segmenter.GraphCutContrastSegmenter.from_config`), so a module's defaults
+are the config's.
+
+The configs shipped with the package (``default.yaml``, a full listing of these defaults, and the
+datasets' ``eed.yaml`` and ``evimo.yaml``, which list only what they change) are package data, found by
+:func:`bundled_config`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import importlib.resources
+import math
+import operator
 import types
 import typing
 from dataclasses import dataclass, field
+from numbers import Integral, Real
 from pathlib import Path
+from typing import ClassVar, NamedTuple
 
 import yaml
 
 from evseg_torch.errors import ConfigError
 
 
+class _Names(NamedTuple):
+    """The names an implementation registers (a module's tuple or dict), looked up when a value is
+    validated: the modules import this one, so it cannot import them first."""
+
+    module: str
+    attribute: str
+
+    def names(self) -> tuple[str, ...]:
+        return tuple(getattr(importlib.import_module(self.module), self.attribute))
+
+
+def _setting(
+    default,
+    *,
+    above: float | None = None,
+    at_least: float | None = None,
+    below: float | None = None,
+    at_most: float | None = None,
+    choices: tuple[str, ...] | _Names | None = None,
+):
+    """A config field: its default and the bounds or choices its value must meet (``None``, where the
+    field allows it, meets all of them)."""
+    limits = {"above": above, "at_least": at_least, "below": below, "at_most": at_most, "choices": choices}
+    return field(default=default, metadata={k: v for k, v in limits.items() if v is not None})
+
+
+class _Section:
+    """Validation shared by every config section: each field's type, finiteness, range and choices."""
+
+    where: ClassVar[str] = ""
+
+    def __post_init__(self) -> None:
+        hints = typing.get_type_hints(type(self))
+        for spec in dataclasses.fields(self):
+            key = f"{self.where}{spec.name}"
+            value, hint = getattr(self, spec.name), hints[spec.name]
+            if dataclasses.is_dataclass(hint):
+                if not isinstance(value, hint):
+                    raise ConfigError(
+                        f"config key {key!r} must be a {hint.__name__}, got {type(value).__name__}"
+                    )
+                continue
+            value = _coerce(value, hint, key)
+            if value is not None:
+                _check_limits(value, spec.metadata, key)
+            object.__setattr__(self, spec.name, value)
+
+
 @dataclass(frozen=True)
-class WindowConfig:
+class WindowConfig(_Section):
     """How a recording is cut into windows.
 
     Attributes:
@@ -31,23 +96,25 @@ class WindowConfig:
         min_events: windows with fewer events are reported as empty rather than segmented.
     """
 
-    window_ms: float = 30.0
-    stride_ms: float | None = None
-    events_per_window: int | None = None
-    min_events: int = 200
+    where: ClassVar[str] = "window."
+
+    window_ms: float = _setting(30.0, above=0)
+    stride_ms: float | None = _setting(None, above=0)
+    events_per_window: int | None = _setting(None, at_least=1)
+    min_events: int = _setting(200, at_least=0)
 
 
 @dataclass(frozen=True)
-class FeatureConfig:
+class FeatureConfig(_Section):
     """Level one's corners and Lucas-Kanade tracks (:mod:`evseg_torch.level_one.features`).
 
     Attributes:
-        sub_window: length of the early and late event images, as a fraction of the window.
+        sub_window: length of the early and late event images, as a fraction of the window, in (0, 0.5].
         max_corners: at most this many Shi-Tomasi corners.
         min_distance: minimum distance between corners in pixels.
         quality_level: corners weaker than this fraction of the strongest response are dropped.
         corner_sigma: Gaussian smoothing of the event images before the corner response, pixels.
-        lk_win_size: Lucas-Kanade window side in pixels.
+        lk_win_size: Lucas-Kanade window side in pixels (OpenCV needs at least 3).
         lk_max_level: pyramid levels of Lucas-Kanade.
         fb_threshold: forward-backward round-trip error above which a track is dropped, pixels.
         both_images: detect corners on the late image too and track them backwards, as the paper does.
@@ -56,26 +123,43 @@ class FeatureConfig:
             cold (:func:`~evseg_torch.level_one.features.guided_tracks`).
     """
 
-    sub_window: float = 1.0 / 3.0
-    max_corners: int = 500
-    min_distance: int = 2
-    quality_level: float = 0.001
-    corner_sigma: float = 1.0
-    lk_win_size: int = 21
-    lk_max_level: int = 3
-    fb_threshold: float = 0.25
+    where: ClassVar[str] = "features."
+
+    sub_window: float = _setting(1.0 / 3.0, above=0, at_most=0.5)
+    max_corners: int = _setting(500, at_least=1)
+    min_distance: int = _setting(2, at_least=1)
+    quality_level: float = _setting(0.001, at_least=0, below=1)
+    corner_sigma: float = _setting(1.0, at_least=0)
+    lk_win_size: int = _setting(21, at_least=3)
+    lk_max_level: int = _setting(3, at_least=0)
+    fb_threshold: float = _setting(0.25, above=0)
     both_images: bool = True
     guided_tracking: bool = True
 
+    def correspondence_settings(self) -> dict:
+        """The keywords of :func:`~evseg_torch.level_one.features.extract_correspondences` that this
+        section sets (``guided_tracking`` decides whether the pipeline also gives it the models)."""
+        return {
+            "sub_window": self.sub_window,
+            "max_corners": self.max_corners,
+            "min_distance": self.min_distance,
+            "quality_level": self.quality_level,
+            "sigma": self.corner_sigma,
+            "win_size": (self.lk_win_size, self.lk_win_size),
+            "max_level": self.lk_max_level,
+            "fb_threshold": self.fb_threshold,
+            "both_images": self.both_images,
+        }
+
 
 @dataclass(frozen=True)
-class LevelOneConfig:
+class LevelOneConfig(_Section):
     """Progressive-X with GC-RANSAC proposals (:mod:`evseg_torch.level_one.progressive_x`).
 
     Attributes:
         threshold: inlier-outlier threshold τ in pixels (paper: 1.5); decisions use 1.5 τ.
-        conf: RANSAC confidence μ (paper: 0.95).
-        spatial_coherence_weight: Potts weight of GC-RANSAC's labelling and of PEARL.
+        conf: RANSAC confidence μ (paper: 0.95), in (0, 1).
+        spatial_coherence_weight: Potts weight of GC-RANSAC's labelling and of PEARL, in [0, 1].
         neighborhood_ball_radius: radius of the correspondences' neighbourhood graph, pixels.
         maximum_tanimoto_similarity: proposals more similar than this to the compound model are rejected.
         max_iters: maximum RANSAC iterations per proposal.
@@ -102,48 +186,63 @@ class LevelOneConfig:
             stream then runs level one only on its first window, or after a window that kept no model).
     """
 
-    threshold: float = 1.5
-    conf: float = 0.95
-    spatial_coherence_weight: float = 0.14
-    neighborhood_ball_radius: float = 15.0
-    maximum_tanimoto_similarity: float = 0.5
-    max_iters: int = 1000
-    minimum_point_number: int = 4
-    maximum_model_number: int = -1
-    scoring_exponent: float = 1.0
-    quality: str = "progressive_x"
-    reuse_models: bool = True
-    initial_models: str = "augment"
+    where: ClassVar[str] = "level_one."
 
-    def __post_init__(self):
-        if self.quality not in ("progressive_x", "paper"):
-            raise ConfigError(f"level_one.quality must be 'progressive_x' or 'paper', got {self.quality!r}")
-        if self.initial_models not in ("augment", "replace"):
-            raise ConfigError(
-                f"level_one.initial_models must be 'augment' or 'replace', got {self.initial_models!r}"
-            )
+    threshold: float = _setting(1.5, above=0)
+    conf: float = _setting(0.95, above=0, below=1)
+    spatial_coherence_weight: float = _setting(0.14, at_least=0, at_most=1)
+    neighborhood_ball_radius: float = _setting(15.0, above=0)
+    maximum_tanimoto_similarity: float = _setting(0.5, at_least=0, at_most=1)
+    max_iters: int = _setting(1000, at_least=1)
+    minimum_point_number: int = _setting(4, at_least=0)
+    maximum_model_number: int = _setting(-1, at_least=-1)
+    scoring_exponent: float = _setting(1.0, above=0)
+    quality: str = _setting("progressive_x", choices=_Names("evseg_torch.level_one.gc_ransac", "QUALITIES"))
+    reuse_models: bool = True
+    initial_models: str = _setting("augment", choices=("augment", "replace"))
+
+    def progressive_x_settings(self) -> dict:
+        """The keywords of :func:`~evseg_torch.level_one.progressive_x.progressive_x` that this section
+        sets (all its fields but the pipeline's own ``reuse_models`` and ``initial_models``)."""
+        pipeline_only = {"reuse_models", "initial_models"}
+        return {
+            f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in pipeline_only
+        }
 
 
 @dataclass(frozen=True)
-class LevelTwoConfig:
+class LevelTwoConfig(_Section):
     """EMSGC's spatio-temporal graph cut with contrast-maximisation refits (:mod:`evseg_torch.level_two`).
+
+    These are the settings of :class:`~evseg_torch.level_two.segmenter.GraphCutContrastSegmenter`
+    (its keywords, or ``from_config``), defined here only.
 
     Attributes:
         lambda_data: weight λ_D of the data term (EMSGC: 1).
-        lambda_smooth: Potts weight λ_P (EMSGC: 25–43).
-        lambda_label: label cost λ_M, the MDL term (EMSGC: 8000; 4000 on EED occlusions), in windows of up
-            to ``label_cost_events`` events. 4000 by default:
+        lambda_smooth: Potts weight λ_P per unit edge weight (EMSGC: 25–43).
+        lambda_label: label cost λ_M per model in use, the MDL term (EMSGC: 8000; 4000 on EED
+            occlusions), in windows of up to ``label_cost_events`` events. 4000 by default:
             with 8000 an object of ~1000 events (5% of a synthetic window) whose level-one model starts
             ~1.5 px off loses its cluster in the first labelling, before a refit can sharpen it.
-        n_iter_segmentation: outer block-coordinate-descent iterations (EMSGC: 5). 3 by default: over
+        n_iter_segmentation: outer block-coordinate-descent rounds (EMSGC: 5). 3 by default: over
             pipeline seeds 0-2 the probe, `hard` and own scenes and EED score within 0.002 of 5 rounds
             (EED's detection rates equal), and level two takes 0.85 of the time (median per window).
         n_iter_labeling: α-expansion cycles per labelling (EMSGC: 2; one loses nothing measurable here).
-        sigma: Gaussian width of the images of warped events, pixels (EMSGC: 1).
-        optimizer: ``lbfgs`` or ``adam`` for the contrast-maximisation refits.
-        max_iter: optimiser iterations of the first refit.
-        warm_max_iter: iterations of the later, warm-started refits (``None``: ``max_iter``).
-        lr: learning rate (Adam) or initial step (L-BFGS).
+        sigma: Gaussian width of the images of warped events in the data term and the refits, pixels
+            (EMSGC: 1).
+        objective: contrast objective of the refits, a key of
+            :data:`~evseg_torch.level_two.contrast.CONTRAST_OBJECTIVES` (EMSGC: ``variance``).
+        collapse_weight: exponent γ of the refits' event-collapse guard
+            (:func:`~evseg_torch.level_two.contrast.contrast_loss`); 0 switches it off (EMSGC's plain
+            objective).
+        optimizer: ``lbfgs`` (L-BFGS with strong-Wolfe line search) or ``adam`` for the refits.
+        max_iter: optimiser iterations of the first refit, which starts from the initial pool.
+        warm_max_iter: iterations of each later refit, which starts from the previous refit's models
+            (``None``: ``max_iter``).
+        lr: learning rate (Adam) or initial step (L-BFGS) of the refits, in pixels of displacement;
+            ``None`` (default) for the optimiser's own default, 1 for L-BFGS and 0.1 for Adam
+            (:class:`~evseg_torch.level_two.contrast.ContrastMaximization`).
+        temporal_edges: also join consecutive events at the same pixel in the graph (EMSGC: no).
         data_normalization: ``relative`` (each event's image value divided by its best over the pool,
             floored at the pool's 90th percentile) or ``global`` (EMSGC: divided by the global maximum).
             Relative separates layers far better on our scenes; see :mod:`evseg_torch.level_two.data_term`.
@@ -151,9 +250,11 @@ class LevelTwoConfig:
             (EMSGC: one image of all events).
         refit_max_events: each refit sees an evenly spaced subsample of at most this many events per
             cluster (``None``: all); models fitted on 4000 events are as good and several times faster.
-        label_tol: stop the outer iterations once at most this fraction of labels changed (EMSGC: 0).
+        label_tol: stop the outer iterations once at most this fraction of labels changed, in [0, 1)
+            (EMSGC: 0).
         site_time_slices: graph-cut sites are the events of one pixel within one of this many time slices
-            of the window (``None``: every event is a site, as in EMSGC); 1 cuts the graph 2-4x smaller.
+            of the window (``None``: every event is a site, as in EMSGC); 1 cuts the graph 2-4x smaller
+            (:func:`~evseg_torch.level_two.graph.site_graph`).
         label_cost_events: the label cost scales with dense windows: a window of N events pays
             ``lambda_label * max(1, N / label_cost_events)`` per label (``None``: ``lambda_label`` whatever
             the window, as in EMSGC). The data cost a spurious model saves grows with the events it
@@ -165,46 +266,57 @@ class LevelTwoConfig:
             :mod:`evseg_torch.level_two.segmenter` and :mod:`evseg_torch.level_two.discovery`.
         discovery_min_events: fewest events of a region that gets a proposed model.
         discovery_residual_cost: also propose models for connected events whose own model's data cost is
-            at least this (of 255); ``None`` for none (every threshold tried lowered detection on the
-            probe scenes, see :class:`~evseg_torch.level_two.segmenter.GraphCutContrastSegmenter`).
+            at least this (of 255); ``None`` for none. With the ``relative`` data term most background
+            events of a sparse window cost that much, so on the synthetic probe scenes every threshold
+            tried (128–240) lowered detection.
         discovery_radius: pixels by which events reach out when grouped into regions.
         discovery_max_proposals: most models proposed at a time (the largest regions).
         discovery_min_gain: a proposal is kept only if it raises its region's contrast by at least this
             fraction over the region's own cluster's model (0: it must not lower it).
         discovery_max_iter: optimiser iterations of each proposal's contrast-maximisation fit.
         soft_temperature: temperature of the per-event soft assignments, a softmax of the negative data
-            cost (units of the cost, 0-255); 20 is calibrated on synthetic scenes (see
+            cost (units of the cost, 0-255; a cost difference of one temperature between two clusters
+            is a factor ``e`` between their probabilities); 20 is calibrated on synthetic scenes (see
             :data:`~evseg_torch.level_two.segmenter.DEFAULT_SOFT_TEMPERATURE`).
     """
 
-    lambda_data: float = 1.0
-    lambda_smooth: float = 30.0
-    lambda_label: float = 4000.0
-    n_iter_segmentation: int = 3
-    n_iter_labeling: int = 1
-    sigma: float = 1.0
-    optimizer: str = "lbfgs"
-    max_iter: int = 6
-    warm_max_iter: int | None = 3
-    lr: float = 1.0
-    data_normalization: str = "relative"
+    where: ClassVar[str] = "level_two."
+
+    lambda_data: float = _setting(1.0, at_least=0)
+    lambda_smooth: float = _setting(30.0, at_least=0)
+    lambda_label: float = _setting(4000.0, at_least=0)
+    n_iter_segmentation: int = _setting(3, at_least=1)
+    n_iter_labeling: int = _setting(1, at_least=1)
+    sigma: float = _setting(1.0, at_least=0)
+    objective: str = _setting(
+        "variance", choices=_Names("evseg_torch.level_two.contrast", "CONTRAST_OBJECTIVES")
+    )
+    collapse_weight: float = _setting(0.375, at_least=0)
+    optimizer: str = _setting("lbfgs", choices=_Names("evseg_torch.level_two.contrast", "OPTIMIZERS"))
+    max_iter: int = _setting(6, at_least=1)
+    warm_max_iter: int | None = _setting(3, at_least=1)
+    lr: float | None = _setting(None, above=0)
+    temporal_edges: bool = False
+    data_normalization: str = _setting(
+        "relative", choices=_Names("evseg_torch.level_two.data_term", "NORMALIZATIONS")
+    )
     data_polarity: bool = True
-    refit_max_events: int | None = 4000
-    label_tol: float = 0.002
-    site_time_slices: int | None = 1
-    label_cost_events: float | None = 15000.0
-    discovery_rounds: int = 1
-    discovery_min_events: int = 100
-    discovery_residual_cost: float | None = None
-    discovery_radius: int = 2
-    discovery_max_proposals: int = 8
-    discovery_min_gain: float = 0.0
-    discovery_max_iter: int = 20
-    soft_temperature: float = 20.0
+    refit_max_events: int | None = _setting(4000, at_least=1)
+    label_tol: float = _setting(0.002, at_least=0, below=1)
+    site_time_slices: int | None = _setting(1, at_least=1)
+    label_cost_events: float | None = _setting(15000.0, above=0)
+    discovery_rounds: int = _setting(1, at_least=0)
+    discovery_min_events: int = _setting(100, at_least=1)
+    discovery_residual_cost: float | None = _setting(None, at_least=0, at_most=255)
+    discovery_radius: int = _setting(2, at_least=0)
+    discovery_max_proposals: int = _setting(8, at_least=1)
+    discovery_min_gain: float = _setting(0.0, at_least=0)
+    discovery_max_iter: int = _setting(20, at_least=1)
+    soft_temperature: float = _setting(20.0, above=0)
 
 
 @dataclass(frozen=True)
-class SegmenterConfig:
+class SegmenterConfig(_Section):
     """Everything :class:`~evseg_torch.pipeline.CascadedSegmenter` needs.
 
     Attributes:
@@ -213,17 +325,43 @@ class SegmenterConfig:
         seed: seed of every random choice, so runs are reproducible.
     """
 
-    motion_model: str = "affine4"
-    focal: tuple[float, float] | None = None
-    seed: int = 0
+    motion_model: str = _setting("affine4", choices=_Names("evseg_torch.motion", "MOTION_MODELS"))
+    focal: tuple[float, float] | None = _setting(None, above=0)
+    seed: int = _setting(0, at_least=0)
     window: WindowConfig = field(default_factory=WindowConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
     level_one: LevelOneConfig = field(default_factory=LevelOneConfig)
     level_two: LevelTwoConfig = field(default_factory=LevelTwoConfig)
 
 
+def bundled_config(name: str) -> Path:
+    """The path of a config shipped with the package: ``default``, ``eed`` or ``evimo`` (``.yaml`` optional).
+
+    Raises:
+        ConfigError: no such config is shipped.
+    """
+    configs = importlib.resources.files("evseg_torch") / "configs"
+    shipped = sorted(item.name for item in configs.iterdir() if item.name.endswith(".yaml"))
+    filename = name if name.endswith(".yaml") else f"{name}.yaml"
+    if filename not in shipped:
+        raise ConfigError(f"no bundled config {name!r}; shipped: {', '.join(shipped)}")
+    # The package is installed as files (a wheel or an editable install), never zipped.
+    return Path(str(configs / filename))
+
+
+def replace_settings(section, **settings):
+    """A copy of one config section with some fields replaced, validated; unknown names are errors."""
+    names = [f.name for f in dataclasses.fields(section)]
+    unknown = sorted(set(settings) - set(names))
+    if unknown:
+        raise ConfigError(
+            f"unknown config key {section.where}{unknown[0]!r}; known keys here: {sorted(names)}"
+        )
+    return dataclasses.replace(section, **settings)
+
+
 def config_from_dict(data: dict, cls: type = SegmenterConfig, where: str = ""):
-    """Build a config dataclass from a (nested) mapping, rejecting unknown keys and wrong types."""
+    """Build a config dataclass from a (nested) mapping, rejecting unknown keys and invalid values."""
     if not isinstance(data, dict):
         raise ConfigError(f"{where or 'config'} must be a mapping, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
@@ -231,13 +369,12 @@ def config_from_dict(data: dict, cls: type = SegmenterConfig, where: str = ""):
     unknown = sorted(set(data) - names)
     if unknown:
         raise ConfigError(f"unknown config key {where}{unknown[0]!r}; known keys here: {sorted(names)}")
-    values = {}
-    for name, value in data.items():
-        hint = hints[name]
-        if dataclasses.is_dataclass(hint):
-            values[name] = config_from_dict(value, hint, f"{where}{name}.")
-        else:
-            values[name] = _coerce(value, hint, f"{where}{name}")
+    values = {
+        name: config_from_dict(value, hints[name], f"{where}{name}.")
+        if dataclasses.is_dataclass(hints[name])
+        else value
+        for name, value in data.items()
+    }
     return cls(**values)
 
 
@@ -273,11 +410,9 @@ def replace_config(config: SegmenterConfig, **overrides) -> SegmenterConfig:
 
     A whole section may be replaced too (``level_two=LevelTwoConfig(...)`` or a dict of its fields).
     """
-    sections = {
-        f.name: f.type
-        for f in dataclasses.fields(config)
-        if dataclasses.is_dataclass(getattr(config, f.name))
-    }
+    sections = [
+        f.name for f in dataclasses.fields(config) if dataclasses.is_dataclass(getattr(config, f.name))
+    ]
     top, nested = {}, {name: {} for name in sections}
     for key, value in overrides.items():
         if key in sections:
@@ -293,24 +428,23 @@ def replace_config(config: SegmenterConfig, **overrides) -> SegmenterConfig:
         if owner is None and key not in {f.name for f in dataclasses.fields(config)}:
             raise ConfigError(f"unknown config key {key!r}")
         if owner is None:
-            top[key] = _coerce(value, typing.get_type_hints(SegmenterConfig)[key], key)
+            top[key] = value
         else:
             nested[owner][key] = value
     for section, values in nested.items():
         if values:
-            current = config_to_dict(top.get(section, getattr(config, section)))
-            top[section] = config_from_dict(
-                {**current, **values}, type(getattr(config, section)), f"{section}."
-            )
+            top[section] = dataclasses.replace(top.get(section, getattr(config, section)), **values)
     return dataclasses.replace(config, **top)
 
 
-def _coerce(value, hint, where: str):
+def _coerce(value, hint, key: str):
+    """``value`` as the type ``hint`` names (an int for a float field becomes a float; a list of a
+    tuple field a tuple), or a ConfigError naming ``key``."""
     options = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
     if value is None:
         if type(None) in options:
             return None
-        raise ConfigError(f"config key {where!r} must not be null")
+        raise ConfigError(f"config key {key!r} must not be null")
     errors = []
     for option in options:
         if option is type(None):
@@ -319,7 +453,7 @@ def _coerce(value, hint, where: str):
             return _coerce_one(value, option)
         except (TypeError, ValueError) as err:
             errors.append(str(err))
-    raise ConfigError(f"config key {where!r} has invalid value {value!r}: {'; '.join(errors)}")
+    raise ConfigError(f"config key {key!r} has invalid value {value!r}: {'; '.join(errors)}")
 
 
 def _coerce_one(value, hint):
@@ -333,18 +467,46 @@ def _coerce_one(value, hint):
             raise TypeError("expected true or false")
         return value
     if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
+        if isinstance(value, bool) or not isinstance(value, Integral):
             raise TypeError("expected an integer")
-        return value
+        return int(value)
     if hint is float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
+        if isinstance(value, bool) or not isinstance(value, Real):
             raise TypeError("expected a number")
+        if not math.isfinite(value):
+            raise ValueError("expected a finite number")
         return float(value)
     if hint is str:
         if not isinstance(value, str):
             raise TypeError("expected a string")
         return value
     raise TypeError(f"unsupported type {hint}")
+
+
+_BOUNDS = {
+    "above": (">", operator.gt),
+    "at_least": (">=", operator.ge),
+    "below": ("<", operator.lt),
+    "at_most": ("<=", operator.le),
+}
+
+
+def _check_limits(value, limits, key: str) -> None:
+    """Check a coerced value (each element of a tuple) against a field's bounds and choices."""
+    if "choices" in limits:
+        choices = limits["choices"]
+        choices = choices.names() if isinstance(choices, _Names) else choices
+        if value not in choices:
+            listed = ", ".join(map(repr, choices))
+            raise ConfigError(f"config key {key!r} has invalid value {value!r}: expected one of {listed}")
+    bounds = [(_BOUNDS[name], bound) for name, bound in limits.items() if name in _BOUNDS]
+    for element in value if isinstance(value, tuple) else (value,):
+        if not all(holds(element, bound) for (_, holds), bound in bounds):
+            wanted = " and ".join(f"{symbol} {bound:g}" for (symbol, _), bound in bounds)
+            noun = "integer" if isinstance(element, int) else "number"
+            positive = {("above", 0), ("at_least", 1)} & set(limits.items())
+            kind = f"a positive {noun}" if positive else {"integer": "an integer", "number": "a number"}[noun]
+            raise ConfigError(f"config key {key!r} has invalid value {value!r}: expected {kind} {wanted}")
 
 
 def _plain(value):

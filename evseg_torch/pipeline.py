@@ -100,7 +100,7 @@ class CascadedSegmenter(nn.Module):
 
     Args:
         sensor_size: ``(H, W)``.
-        config: a :class:`~evseg_torch.config.SegmenterConfig`; defaults equal ``configs/default.yaml``.
+        config: a :class:`~evseg_torch.config.SegmenterConfig`; defaults equal the bundled ``default.yaml``.
         **overrides: flat overrides of any config field, e.g. ``lambda_smooth=40``.
 
     Examples:
@@ -128,41 +128,14 @@ class CascadedSegmenter(nn.Module):
             self.sensor_size,
             **({"focal": cfg.focal} if cfg.motion_model == "rotation3d" else {}),
         )
-        two = cfg.level_two
-        self.level_two = GraphCutContrastSegmenter(
-            self.motion,
-            self.sensor_size,
-            lambda_data=two.lambda_data,
-            lambda_smooth=two.lambda_smooth,
-            lambda_label=two.lambda_label,
-            n_iter_segmentation=two.n_iter_segmentation,
-            n_iter_labeling=two.n_iter_labeling,
-            sigma=two.sigma,
-            optimizer=two.optimizer,
-            max_iter=two.max_iter,
-            lr=two.lr,
-            data_normalization=two.data_normalization,
-            data_polarity=two.data_polarity,
-            refit_max_events=two.refit_max_events,
-            label_tol=two.label_tol,
-            warm_max_iter=two.warm_max_iter,
-            site_time_slices=two.site_time_slices,
-            label_cost_events=two.label_cost_events,
-            discovery_rounds=two.discovery_rounds,
-            discovery_min_events=two.discovery_min_events,
-            discovery_residual_cost=two.discovery_residual_cost,
-            discovery_radius=two.discovery_radius,
-            discovery_max_proposals=two.discovery_max_proposals,
-            discovery_min_gain=two.discovery_min_gain,
-            discovery_max_iter=two.discovery_max_iter,
-            soft_temperature=two.soft_temperature,
-        )
+        self.level_two = GraphCutContrastSegmenter.from_config(cfg.level_two, self.motion, self.sensor_size)
         # Follows .to(device) and .double(), so level two runs where the caller put the module.
         self.register_buffer("_anchor", torch.zeros(0), persistent=False)
 
     @classmethod
     def from_config(cls, path: str | Path, sensor_size: tuple[int, int], **overrides) -> CascadedSegmenter:
-        """Build from a YAML file (see ``configs/``), with optional flat overrides."""
+        """Build from a YAML file (a bundled one: :func:`~evseg_torch.config.bundled_config`), with optional
+        flat overrides."""
         return cls(sensor_size, load_config(path), **overrides)
 
     def extra_repr(self) -> str:
@@ -401,39 +374,19 @@ class CascadedSegmenter(nn.Module):
             pool = given if replaced else np.zeros((0, self.motion.n_params))
             fitted = ProgressiveXResult(pool, np.zeros(0, dtype=np.int64), 0, 0)
             return tracks, fitted, 1e3 * (time.perf_counter() - start)
-        feats = cfg.features
+        guided = (
+            {"motion": self.motion, "initial_models": initial_models} if cfg.features.guided_tracking else {}
+        )
         tracks = extract_correspondences(
-            events,
-            self.sensor_size,
-            sub_window=feats.sub_window,
-            t_ref=t_ref_us,
-            max_corners=feats.max_corners,
-            min_distance=feats.min_distance,
-            quality_level=feats.quality_level,
-            sigma=feats.corner_sigma,
-            win_size=(feats.lk_win_size, feats.lk_win_size),
-            max_level=feats.lk_max_level,
-            fb_threshold=feats.fb_threshold,
-            both_images=feats.both_images,
-            **({"motion": self.motion, "initial_models": initial_models} if feats.guided_tracking else {}),
+            events, self.sensor_size, t_ref=t_ref_us, **cfg.features.correspondence_settings(), **guided
         )
         after_features = time.perf_counter()
-        one = cfg.level_one
         fitted = progressive_x(
             tracks.src,
             tracks.dst,
             tracks.dt,
             self.motion,
-            threshold=one.threshold,
-            conf=one.conf,
-            spatial_coherence_weight=one.spatial_coherence_weight,
-            neighborhood_ball_radius=one.neighborhood_ball_radius,
-            maximum_tanimoto_similarity=one.maximum_tanimoto_similarity,
-            max_iters=one.max_iters,
-            minimum_point_number=one.minimum_point_number,
-            maximum_model_number=one.maximum_model_number,
-            scoring_exponent=one.scoring_exponent,
-            quality=one.quality,
+            **cfg.level_one.progressive_x_settings(),
             initial_models=initial_models,
             # Seeded afresh for every window: a window's labels never depend on the calls before it.
             rng=np.random.default_rng(cfg.seed),

@@ -212,7 +212,7 @@ def evaluate_sequence(
 
     Args:
         sequence: from :func:`load_eed_sequence`.
-        config: the segmenter's config (``configs/eed.yaml`` for the paper's figures); its
+        config: the segmenter's config (the bundled ``eed.yaml`` for the paper's figures); its
             ``window.min_events`` sets which windows are evaluable.
         window_ms: window length; default ``config.window.window_ms``.
         reference, progress, on_window: as in :func:`evaluate_boxes`.

@@ -38,7 +38,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from evseg_torch.errors import ConfigError, ShapeError
+from evseg_torch.config import LevelTwoConfig
+from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.iwe import (
     _batch_of_one,
@@ -49,8 +50,12 @@ from evseg_torch.level_two.iwe import (
 )
 from evseg_torch.motion import MotionModel
 
-DEFAULT_COLLAPSE_WEIGHT = 0.375
-"""Default exponent γ of the area-element weights of the event-collapse guard (module docstring)."""
+DEFAULT_COLLAPSE_WEIGHT = LevelTwoConfig.collapse_weight
+"""Default exponent γ of the area-element weights of the event-collapse guard (module docstring); the
+refits' setting ``collapse_weight`` of :class:`~evseg_torch.config.LevelTwoConfig`."""
+
+OPTIMIZERS = ("lbfgs", "adam")
+"""The refits' optimisers (:class:`ContrastMaximization`)."""
 
 _MIN_AREA = 1e-6  # folded warps (a <= 0) keep a tiny weight and a finite gradient
 # Pixels a fit's crop reaches beyond its events' raw and initially warped positions: room for the
@@ -615,10 +620,10 @@ class ContrastMaximization(nn.Module):
     ) -> None:
         super().__init__()
         _objective(objective)
-        if optimizer not in ("lbfgs", "adam"):
-            raise ConfigError(f"optimizer must be 'lbfgs' or 'adam', got {optimizer!r}")
-        if int(max_iter) < 1:
-            raise ConfigError(f"max_iter must be >= 1, got {max_iter}")
+        if optimizer not in OPTIMIZERS:
+            raise ConfigError(f"optimizer must be {' or '.join(map(repr, OPTIMIZERS))}, got {optimizer!r}")
+        if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 1:
+            raise ConfigError(f"max_iter must be an integer >= 1, got {max_iter}")
         if lr is not None and not lr > 0:
             raise ConfigError(f"lr must be > 0, got {lr}")
         if not collapse_weight >= 0:
@@ -635,6 +640,8 @@ class ContrastMaximization(nn.Module):
 
     def forward(self, events: EventBatch, init_params: Tensor, weights: Tensor | None = None) -> Tensor:
         n_params = self.model.n_params
+        if not torch.isfinite(init_params).all():
+            raise ModelError("init_params hold NaN or inf: every model's parameters must be finite")
         if events.is_batched:
             _check_padded(events)
             n_windows, longest = events.t.shape

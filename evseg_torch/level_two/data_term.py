@@ -64,7 +64,7 @@ from numbers import Integral
 import torch
 from torch import Tensor, nn
 
-from evseg_torch.errors import ConfigError, ShapeError
+from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.iwe import _batch_of_one, extent_mask, splat_events, warp_events
 from evseg_torch.motion import MotionModel
@@ -195,6 +195,7 @@ def data_cost(
     Raises:
         ShapeError: if ``params`` is not :math:`(K, P)` (:math:`(B, K, P)` for a batch) with ``K >= 1``
             and the model's ``P``, or ``valid`` is not :math:`(B, K)`.
+        ModelError: if ``params`` hold NaN or inf.
         ConfigError: for an unknown ``normalization``.
 
     Examples:
@@ -225,6 +226,8 @@ def data_cost(
         raise ShapeError(
             f"valid must be (B, K) = {tuple(params.shape[:-1])} for a batch, got {tuple(valid.shape)}"
         )
+    if not torch.isfinite(params).all():
+        raise ModelError("params hold NaN or inf: every model's parameters must be finite")
     if normalization not in NORMALIZATIONS:
         raise ConfigError(f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}")
     _check_margin(margin)

@@ -96,6 +96,7 @@ hundred thousand events, and the data term in chunks of a window or two (same re
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -105,7 +106,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
+from evseg_torch.config import LevelTwoConfig, replace_settings
+from evseg_torch.errors import EventFormatError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_windows
 from evseg_torch.graphcut.alpha_expansion import PottsGraph, alpha_expansion, potts_graph
 from evseg_torch.level_two.contrast import (
@@ -114,7 +116,7 @@ from evseg_torch.level_two.contrast import (
     gather_members,
     warp_area_element,
 )
-from evseg_torch.level_two.data_term import MAX_COST, NORMALIZATIONS, DataCost
+from evseg_torch.level_two.data_term import DataCost
 from evseg_torch.level_two.discovery import (
     candidate_regions,
     centroid_velocity,
@@ -143,7 +145,7 @@ _CPU_BATCH_EVENTS = 1 << 18
 # chunks of 4-8). Other devices cost the whole batch at once. The costs are the same either way.
 _CPU_DATA_TERM_PAIRS = 1 << 18
 
-DEFAULT_SOFT_TEMPERATURE = 20.0
+DEFAULT_SOFT_TEMPERATURE = LevelTwoConfig.soft_temperature
 """Default temperature of :attr:`LevelTwoResult.soft_assignments`, in data-cost units (of ``[0, 255]``).
 
 Chosen by temperature scaling: of the temperatures below, it minimises the mean negative log-likelihood of
@@ -283,50 +285,19 @@ class _Clock:
 class GraphCutContrastSegmenter(nn.Module):
     r"""Level two of the cascade: EMSGC's graph-cut segmentation with contrast-maximisation refits.
 
+    Every setting (the λ weights, the rounds, the refits' optimiser, discovery, ...) is a field of
+    :class:`~evseg_torch.config.LevelTwoConfig`, which holds its default, its documentation and its
+    validation: build the segmenter from such a section (:meth:`from_config`, as the pipeline does), or
+    give some settings as keywords (``optimizer="adam"``), the others keeping the config's defaults.
+
     Args:
         model: the motion model, or its name (``translation``, ``affine4``, ``rotation3d``).
         sensor_size: ``(H, W)``.
-        lambda_data: weight :math:`\lambda_D` of the data term (EMSGC: 1).
-        lambda_smooth: Potts weight :math:`\lambda_P` per unit edge weight (EMSGC: 25–43).
-        lambda_label: label cost :math:`\lambda_M` per model in use (EMSGC: 8000; 4000 on EED occlusions),
-            in windows of up to ``label_cost_events`` events.
-        n_iter_segmentation: outer block-coordinate-descent rounds (EMSGC: 5; 3 loses nothing measurable
-            here, see :class:`~evseg_torch.config.LevelTwoConfig`).
-        n_iter_labeling: α-expansion cycles per labelling (EMSGC: 2).
-        sigma: Gaussian blur of the IWEs in the data term and the refits, pixels (EMSGC: 1).
-        objective: contrast objective of the refits (see :mod:`~evseg_torch.level_two.contrast`).
-        optimizer: ``lbfgs`` or ``adam`` for the refits.
-        max_iter: optimiser iterations of the first refit, which starts from the initial pool.
-        warm_max_iter: optimiser iterations of each later refit, which starts from the previous refit's
-            models; ``None`` for ``max_iter``.
-        lr: learning rate (Adam) or initial step (L-BFGS) of the refits, in pixels of displacement;
-            ``None`` for the refit's default.
-        temporal_edges: also join consecutive events at the same pixel in the graph (EMSGC: no).
-        data_normalization: ``"relative"`` or ``"global"`` (EMSGC), see
-            :func:`~evseg_torch.level_two.data_term.data_cost`.
-        data_polarity: read each event's data cost from the IWE of its own polarity (EMSGC: no).
-        refit_max_events: most events per cluster a refit sees (an even subsample); ``None`` for all.
-        label_tol: stop once at most this fraction of the events changed label in a round (EMSGC: 0).
-        site_time_slices: label sites, the events of one pixel within one of this many slices of the
-            window (see :func:`~evseg_torch.level_two.graph.site_graph`); ``None`` labels every event
-            on its own (EMSGC).
-        label_cost_events: windows of more events pay ``lambda_label`` per ``label_cost_events`` events
-            for each label; ``None`` for ``lambda_label`` whatever the window (EMSGC).
-        discovery_rounds: how many times a window proposes new models (module docstring); 0 for the
-            paper's level two, which only prunes.
-        discovery_min_events: fewest events of a region that gets a proposed model.
-        discovery_residual_cost: also propose models for connected events whose own model's data cost
-            is at least this (of 255); ``None`` (default) for none. With the ``"relative"`` data term
-            most background events of a sparse window cost that much, so on the synthetic probe scenes
-            every threshold tried (128–240) lowered detection.
-        discovery_radius: pixels by which events reach out when grouped into regions.
-        discovery_max_proposals: most models proposed at a time (the largest regions).
-        discovery_min_gain: a proposal must raise its region's contrast by at least this fraction over
-            the region's own model.
-        discovery_max_iter: optimiser iterations of each proposal's fit.
-        soft_temperature: temperature of :attr:`LevelTwoResult.soft_assignments`, in the data cost's
-            units (of ``[0, 255]``); a cost difference of one temperature between two clusters is a
-            factor ``e`` between their probabilities. See :data:`DEFAULT_SOFT_TEMPERATURE`.
+        config: the settings; ``None`` for :class:`~evseg_torch.config.LevelTwoConfig`'s defaults.
+        **settings: fields of :class:`~evseg_torch.config.LevelTwoConfig` replacing those of ``config``.
+
+    Raises:
+        ConfigError: a keyword is not a field of the config, or a value is invalid (the message names it).
 
     Shape:
         - Input: ``events`` one window of N events, ``init_params`` :math:`(K, P)`, optional
@@ -351,134 +322,67 @@ class GraphCutContrastSegmenter(nn.Module):
         self,
         model: MotionModel | str,
         sensor_size: tuple[int, int],
-        *,
-        lambda_data: float = 1.0,
-        lambda_smooth: float = 30.0,
-        lambda_label: float = 4000.0,
-        n_iter_segmentation: int = 3,
-        n_iter_labeling: int = 1,
-        sigma: float = 1.0,
-        objective: str = "variance",
-        optimizer: str = "lbfgs",
-        max_iter: int = 6,
-        warm_max_iter: int | None = 3,
-        lr: float | None = None,
-        temporal_edges: bool = False,
-        data_normalization: str = "relative",
-        data_polarity: bool = True,
-        refit_max_events: int | None = 4000,
-        label_tol: float = 0.002,
-        site_time_slices: int | None = 1,
-        label_cost_events: float | None = 15000.0,
-        discovery_rounds: int = 1,
-        discovery_min_events: int = 100,
-        discovery_residual_cost: float | None = None,
-        discovery_radius: int = 2,
-        discovery_max_proposals: int = 8,
-        discovery_min_gain: float = 0.0,
-        discovery_max_iter: int = 20,
-        soft_temperature: float = DEFAULT_SOFT_TEMPERATURE,
+        config: LevelTwoConfig | None = None,
+        **settings,
     ) -> None:
         super().__init__()
+        self.config = cfg = replace_settings(config or LevelTwoConfig(), **settings)
         self.sensor_size = tuple(int(v) for v in sensor_size)
         self.model = make_motion_model(model, self.sensor_size) if isinstance(model, str) else model
-        for name, value in (
-            ("lambda_data", lambda_data),
-            ("lambda_smooth", lambda_smooth),
-            ("lambda_label", lambda_label),
-        ):
-            if not (np.isfinite(value) and value >= 0):
-                raise ConfigError(f"{name} must be a finite number >= 0, got {value}")
-        for name, value in (
-            ("n_iter_segmentation", n_iter_segmentation),
-            ("n_iter_labeling", n_iter_labeling),
-        ):
-            if int(value) != value or value < 1:
-                raise ConfigError(f"{name} must be a positive integer, got {value}")
-        if data_normalization not in NORMALIZATIONS:
-            raise ConfigError(
-                f"data_normalization must be one of {NORMALIZATIONS}, got {data_normalization!r}"
-            )
-        if refit_max_events is not None and (
-            int(refit_max_events) != refit_max_events or refit_max_events < 1
-        ):
-            raise ConfigError(f"refit_max_events must be a positive integer or None, got {refit_max_events}")
-        if not 0 <= label_tol < 1:
-            raise ConfigError(f"label_tol must lie in [0, 1), got {label_tol}")
-        if site_time_slices is not None and (
-            isinstance(site_time_slices, bool)
-            or int(site_time_slices) != site_time_slices
-            or site_time_slices < 1
-        ):
-            raise ConfigError(f"site_time_slices must be a positive integer or None, got {site_time_slices}")
-        self.site_time_slices = None if site_time_slices is None else int(site_time_slices)
-        if warm_max_iter is not None and (int(warm_max_iter) != warm_max_iter or warm_max_iter < 1):
-            raise ConfigError(f"warm_max_iter must be a positive integer or None, got {warm_max_iter}")
-        self.refit_max_events = None if refit_max_events is None else int(refit_max_events)
-        if label_cost_events is not None and not (np.isfinite(label_cost_events) and label_cost_events > 0):
-            raise ConfigError(
-                f"label_cost_events must be a finite number > 0 or None, got {label_cost_events}"
-            )
-        self.label_cost_events = None if label_cost_events is None else float(label_cost_events)
-        for name, value, low in (
-            ("discovery_rounds", discovery_rounds, 0),
-            ("discovery_min_events", discovery_min_events, 1),
-            ("discovery_radius", discovery_radius, 0),
-            ("discovery_max_proposals", discovery_max_proposals, 1),
-            ("discovery_max_iter", discovery_max_iter, 1),
-        ):
-            if isinstance(value, bool) or int(value) != value or value < low:
-                raise ConfigError(f"{name} must be an integer >= {low}, got {value}")
-        if discovery_residual_cost is not None and not 0 <= discovery_residual_cost <= MAX_COST:
-            raise ConfigError(
-                f"discovery_residual_cost must lie in [0, {MAX_COST}], got {discovery_residual_cost}"
-            )
-        self.discovery_rounds = int(discovery_rounds)
-        self.discovery_min_events = int(discovery_min_events)
-        self.discovery_residual_cost = (
-            None if discovery_residual_cost is None else float(discovery_residual_cost)
-        )
-        self.discovery_radius = int(discovery_radius)
-        self.discovery_max_proposals = int(discovery_max_proposals)
-        if not (np.isfinite(discovery_min_gain) and discovery_min_gain >= 0):
-            raise ConfigError(f"discovery_min_gain must be a finite number >= 0, got {discovery_min_gain}")
-        self.discovery_min_gain = float(discovery_min_gain)
-        self.label_tol = float(label_tol)
-        if isinstance(soft_temperature, bool) or not (np.isfinite(soft_temperature) and soft_temperature > 0):
-            raise ConfigError(f"soft_temperature must be a finite number > 0, got {soft_temperature}")
-        self.soft_temperature = float(soft_temperature)
-        self.lambda_data = float(lambda_data)
-        self.lambda_smooth = float(lambda_smooth)
-        self.lambda_label = float(lambda_label)
-        self.n_iter_segmentation = int(n_iter_segmentation)
-        self.n_iter_labeling = int(n_iter_labeling)
-        self.sigma = float(sigma)
+        self.lambda_data = cfg.lambda_data
+        self.lambda_smooth = cfg.lambda_smooth
+        self.lambda_label = cfg.lambda_label
+        self.n_iter_segmentation = cfg.n_iter_segmentation
+        self.n_iter_labeling = cfg.n_iter_labeling
+        self.sigma = cfg.sigma
+        self.objective = cfg.objective
+        self.collapse_weight = cfg.collapse_weight
+        self.temporal_edges = cfg.temporal_edges
+        self.refit_max_events = cfg.refit_max_events
+        self.label_tol = cfg.label_tol
+        self.site_time_slices = cfg.site_time_slices
+        self.label_cost_events = cfg.label_cost_events
+        self.discovery_rounds = cfg.discovery_rounds
+        self.discovery_min_events = cfg.discovery_min_events
+        self.discovery_residual_cost = cfg.discovery_residual_cost
+        self.discovery_radius = cfg.discovery_radius
+        self.discovery_max_proposals = cfg.discovery_max_proposals
+        self.discovery_min_gain = cfg.discovery_min_gain
+        self.soft_temperature = cfg.soft_temperature
         self.data_term = DataCost(
-            self.model, self.sensor_size, self.sigma, data_normalization, polarity=data_polarity, margin=None
+            self.model,
+            self.sensor_size,
+            cfg.sigma,
+            cfg.data_normalization,
+            polarity=cfg.data_polarity,
+            margin=None,
         )
-        self.objective = objective
-        self.temporal_edges = bool(temporal_edges)
-        warm_max_iter = max_iter if warm_max_iter is None else warm_max_iter
-        refit = {"objective": objective, "optimizer": optimizer, "lr": lr, "sigma": sigma}
-        self.refit = ContrastMaximization(self.model, self.sensor_size, max_iter=max_iter, **refit)
+        refit = {
+            "objective": cfg.objective,
+            "optimizer": cfg.optimizer,
+            "lr": cfg.lr,
+            "sigma": cfg.sigma,
+            "collapse_weight": cfg.collapse_weight,
+        }
+        warm_max_iter = cfg.max_iter if cfg.warm_max_iter is None else cfg.warm_max_iter
+        self.refit = ContrastMaximization(self.model, self.sensor_size, max_iter=cfg.max_iter, **refit)
         self.warm_refit = ContrastMaximization(self.model, self.sensor_size, max_iter=warm_max_iter, **refit)
         self.proposal_fit = ContrastMaximization(
-            self.model, self.sensor_size, max_iter=discovery_max_iter, **refit
+            self.model, self.sensor_size, max_iter=cfg.discovery_max_iter, **refit
         )
 
+    @classmethod
+    def from_config(
+        cls, config: LevelTwoConfig, model: MotionModel | str, sensor_size: tuple[int, int]
+    ) -> GraphCutContrastSegmenter:
+        """The segmenter of a config's ``level_two`` section (for ``model`` and ``sensor_size``)."""
+        return cls(model, sensor_size, config)
+
     def extra_repr(self) -> str:
-        return (
-            f"model={self.model.name}, sensor_size={self.sensor_size}, lambda_data={self.lambda_data}, "
-            f"lambda_smooth={self.lambda_smooth}, lambda_label={self.lambda_label}, "
-            f"n_iter_segmentation={self.n_iter_segmentation}, n_iter_labeling={self.n_iter_labeling}, "
-            f"sigma={self.sigma}, temporal_edges={self.temporal_edges}, "
-            f"refit_max_events={self.refit_max_events}, "
-            f"label_tol={self.label_tol}, site_time_slices={self.site_time_slices}, "
-            f"max_iter={self.refit.max_iter}, warm_max_iter={self.warm_refit.max_iter}, "
-            f"label_cost_events={self.label_cost_events}, discovery_rounds={self.discovery_rounds}, "
-            f"discovery_max_proposals={self.discovery_max_proposals}, "
-            f"discovery_max_iter={self.proposal_fit.max_iter}, soft_temperature={self.soft_temperature}"
+        settings = ", ".join(
+            f"{f.name}={getattr(self.config, f.name)!r}" for f in dataclasses.fields(self.config)
         )
+        return f"model={self.model.name}, sensor_size={self.sensor_size}, {settings}"
 
     def forward(
         self,
@@ -506,7 +410,8 @@ class GraphCutContrastSegmenter(nn.Module):
 
         Raises:
             EventFormatError: if ``events`` is not an EventBatch (or a list of them) or a window is empty.
-            ShapeError: if ``init_params`` or ``init_labels`` has the wrong shape or values.
+            ShapeError: if ``init_params`` or ``init_labels`` has the wrong shape, or labels out of range.
+            ModelError: if ``init_params`` hold NaN or inf.
         """
         if isinstance(events, EventBatch) and not events.is_batched:
             return self._segment(
@@ -545,7 +450,8 @@ class GraphCutContrastSegmenter(nn.Module):
         r"""Differentiable negative contrast of each cluster's own events under its model.
 
         This is the refits' objective (:func:`~evseg_torch.level_two.contrast.contrast_loss` with this
-        segmenter's objective and blur), for training a network that predicts motion parameters.
+        segmenter's objective, blur and collapse guard), for training a network that predicts motion
+        parameters.
 
         Args:
             events: the window's events.
@@ -570,6 +476,7 @@ class GraphCutContrastSegmenter(nn.Module):
             sensor_size=self.sensor_size,
             objective=self.objective,
             sigma=self.sigma,
+            collapse_weight=self.collapse_weight,
         )
 
     def _segment(
@@ -829,6 +736,7 @@ class GraphCutContrastSegmenter(nn.Module):
             sensor_size=self.sensor_size,
             objective=self.objective,
             sigma=self.sigma,
+            collapse_weight=self.collapse_weight,
         )
 
     def _refit(self, refit: ContrastMaximization, events: EventBatch, states: list[_Window]) -> None:
@@ -886,7 +794,7 @@ class GraphCutContrastSegmenter(nn.Module):
                 f"model, got {tuple(params.shape)}"
             )
         if not torch.isfinite(params).all():
-            raise ShapeError("init_params hold NaN or inf")
+            raise ModelError("init_params hold NaN or inf: every model's parameters must be finite")
         return params.detach().to(device=events.xy.device, dtype=events.xy.dtype).clone()
 
     @staticmethod

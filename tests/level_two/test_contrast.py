@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from evseg_torch.errors import ConfigError, ShapeError
+from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_windows
 from evseg_torch.level_two.contrast import (
     CONTRAST_OBJECTIVES,
@@ -333,6 +333,10 @@ class TestContrastMaximization:
             cmax(events, torch.zeros(2, 4, dtype=torch.float64), torch.ones(20, dtype=torch.float64))
         with pytest.raises(ConfigError, match="optimizer must be 'lbfgs' or 'adam'"):
             ContrastMaximization(model, optimizer="sgd")
+        with pytest.raises(ModelError, match="init_params hold NaN or inf"):
+            cmax(events, torch.full((2, 4), float("inf"), dtype=torch.float64))
+        with pytest.raises(ConfigError, match="max_iter must be an integer >= 1, got True"):
+            ContrastMaximization(model, max_iter=True)
         with pytest.raises(ConfigError, match="unknown contrast objective"):
             ContrastMaximization(model, objective="entropy")
 

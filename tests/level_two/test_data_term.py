@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from evseg_torch.errors import ConfigError, ShapeError
+from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_windows
 from evseg_torch.level_two.data_term import NORMALIZATIONS, DataCost, _margins, data_cost, sample_bilinear
 from evseg_torch.level_two.iwe import splat_events, warp_events
@@ -279,5 +279,7 @@ class TestDataCost:
             data_cost(Affine4((32, 40)), events, torch.zeros(2, 2))
         with pytest.raises(ShapeError, match="K >= 1"):
             data_cost(Translation((32, 40)), events, torch.zeros(0, 2))
+        with pytest.raises(ModelError, match="params hold NaN or inf"):
+            data_cost(Translation((32, 40)), events, torch.tensor([[0.0, float("nan")]]))
         with pytest.raises(ShapeError, match="images must be"):
             sample_bilinear(torch.zeros(2, 3, 3), torch.zeros(1, 4, 2))

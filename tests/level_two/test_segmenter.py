@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
+from evseg_torch.errors import ConfigError, EventFormatError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_windows, to_torch
 from evseg_torch.graphcut.alpha_expansion import labeling_energy
 from evseg_torch.level_two import segmenter as segmenter_module
@@ -254,7 +254,7 @@ class TestGraphCutContrastSegmenter:
             segmenter(events, torch.zeros(3, 4))
         with pytest.raises(ShapeError, match="K >= 1"):
             segmenter(events, torch.zeros(0, 2))
-        with pytest.raises(ShapeError, match="NaN"):
+        with pytest.raises(ModelError, match="NaN"):
             segmenter(events, torch.full((2, 2), float("nan")))
         with pytest.raises(ShapeError, match=r"torch\.Tensor"):
             segmenter(events, np.zeros((2, 2)))
@@ -279,8 +279,15 @@ class TestGraphCutContrastSegmenter:
         with pytest.raises(ConfigError, match="warm_max_iter"):
             GraphCutContrastSegmenter("translation", (10, 10), warm_max_iter=0)
         for temperature in (0.0, -1.0, float("nan"), float("inf")):
-            with pytest.raises(ConfigError, match="soft_temperature must be a finite number > 0"):
+            with pytest.raises(ConfigError, match=r"'level_two\.soft_temperature' has invalid value"):
                 GraphCutContrastSegmenter("translation", (10, 10), soft_temperature=temperature)
+        for name in ("max_iter", "n_iter_segmentation", "discovery_max_iter"):
+            with pytest.raises(
+                ConfigError, match=f"'level_two.{name}' has invalid value True: expected an integer"
+            ):
+                GraphCutContrastSegmenter("translation", (10, 10), **{name: True})
+        with pytest.raises(ConfigError, match=r"unknown config key level_two\.'lambda_smoth'"):
+            GraphCutContrastSegmenter("translation", (10, 10), lambda_smoth=1.0)
 
     @pytest.mark.parametrize("site_time_slices", [1, 3])
     def test_sites_share_labels(self, two_layers, site_time_slices):
