@@ -230,6 +230,8 @@ def segment_file(job: Job, progress: bool = False) -> dict:
                     writer.checkpoint(now - started)
                     started = now
                 _raise_if_stopped()
+            if bar.total:
+                bar.update(bar.total - bar.n)  # the last windows may have been too sparse to segment
         if chunks.n_events == 0:
             raise EvsegError(f"{job.path}: no events {chunks.describe()}")
         extra = {
@@ -332,6 +334,8 @@ def segment_files(jobs: Sequence[Job], workers: int = 1, keep_going: bool = Fals
             while not task.ready():
                 task.wait(0.2)
                 _raise_if_stopped()
+            if bar.total:
+                bar.update(bar.total - bar.n)  # the last windows may have been too sparse to segment
             outcome = task.get()
             if outcome[2] is not None and not keep_going:
                 raise EvsegError(outcome[2])
