@@ -478,7 +478,7 @@ def _demo(args) -> int:
     (args.out / "metrics.json").write_text(json.dumps({**metrics, "timings_ms": result.timings_ms}, indent=2))
     log.info("wrote %s", path)
     for key, value in metrics.items():
-        log.info("%-13s %s", key, value)
+        log.info("%-13s %s", key, f"{value:.3f}" if isinstance(value, float) else value)
     return 0
 
 
