@@ -30,17 +30,39 @@ SENSOR = (180, 240)
 SCENE_US = 30_000
 
 
-def write_recording(path: Path, minutes: float, n_scenes: int, events_per_scene: int) -> int:
+def write_recording(
+    path: Path,
+    minutes: float,
+    n_scenes: int,
+    events_per_scene: int,
+    scene_us: int = SCENE_US,
+    **scene_options,
+) -> int:
+    """Write a recording of ``minutes``: ``n_scenes`` synthetic scenes of ``scene_us`` each, in turn.
+
+    Args:
+        path: the ``.npy`` file to write (chunk by chunk, through a memory map).
+        minutes: length of the recording.
+        n_scenes: distinct scenes, drawn with seeds 0, 1, ...
+        events_per_scene: about how many signal events each scene has (noise comes on top).
+        scene_us: length of each scene in microseconds.
+        **scene_options: more keywords of :func:`~evseg_torch.synthetic.make_scene`, e.g. ``noise_rate_hz``.
+
+    Returns:
+        The number of events written.
+    """
+    duration = scene_us / 1e6
     scenes = [
-        make_scene(SENSOR, 0.03, 1 + s % 3, n_events=events_per_scene, rng=s).events for s in range(n_scenes)
+        make_scene(SENSOR, duration, 1 + s % 3, n_events=events_per_scene, rng=s, **scene_options).events
+        for s in range(n_scenes)
     ]
-    n_windows = round(minutes * 60e6 / SCENE_US)
+    n_windows = round(minutes * 60e6 / scene_us)
     total = sum(len(scenes[w % n_scenes]) for w in range(n_windows))
     out = np.lib.format.open_memmap(path, mode="w+", dtype=EVENT_DTYPE, shape=(total,))
     position = 0
     for window in range(n_windows):
         chunk = scenes[window % n_scenes].copy()
-        chunk["t"] = chunk["t"] - chunk["t"][0] + window * SCENE_US
+        chunk["t"] = chunk["t"] - chunk["t"][0] + window * scene_us
         out[position : position + len(chunk)] = chunk
         position += len(chunk)
     out.flush()
@@ -87,7 +109,7 @@ def main():
     parser.add_argument("--workers", type=int, default=1, help="evseg segment --workers")
     parser.add_argument("--batch-size", type=int, default=1, help="evseg segment --batch-size")
     args = parser.parse_args()
-    print(f"workers {args.workers}, batch size {max(args.batch_size, args.workers)}")
+    print(f"workers {args.workers}, batch size {args.batch_size}")
     print(
         f"{'minutes':>7} {'events':>10} {'windows':>7} {'wall s':>8} {'events/s':>9} {'windows/s':>9} "
         f"{'x real time':>11} {'peak RSS MiB':>12}"
