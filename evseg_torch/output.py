@@ -72,6 +72,19 @@ def folder_state(folder: str | Path) -> str:
     return "finished" if (folder / "summary.json").is_file() else "other"
 
 
+def holds_run(folder: str | Path, run: dict) -> bool:
+    """Whether ``folder`` holds a stopped or finished run with identity ``run`` (see SegmentationWriter)."""
+    folder = Path(folder)
+    state = folder_state(folder)
+    if state == "stopped":
+        recorded = json.loads((folder / PARTIAL / _STATE).read_text()).get("run")
+    elif state == "finished":
+        recorded = json.loads((folder / "summary.json").read_text()).get("run")
+    else:
+        return False
+    return recorded == _plain(run)
+
+
 class SegmentationWriter:
     """Write one recording's per-window results as they come; use as a context manager.
 
