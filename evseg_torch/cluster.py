@@ -3,9 +3,9 @@
 * **Tasks**: each input's :class:`~evseg_torch.runs.Job` is one task that runs
   :func:`~evseg_torch.runs.segment_file` on a worker, with one torch thread, so its folder holds what a
   run on this machine writes (same files, same labels for the same config and seed). Workers read the
-  inputs and write the outputs by the paths given here: the same paths must name the same files on every
-  machine (a shared filesystem), and every worker must import the same version of evseg_torch (checked
-  before the tasks are sent).
+  inputs and write the outputs by the paths given here, made absolute: the same paths must name the same
+  files on every machine (a shared filesystem), and every worker must import the same version of
+  evseg_torch (checked before the tasks are sent).
 * **Failures**: a bad input or a refused folder (an :class:`~evseg_torch.errors.EvsegError`) is final and
   comes back as a value. Anything else a task raises is retried :data:`RETRIES` times (``retries=`` of
   ``Client.submit``), and a task whose worker dies is rerun elsewhere by the scheduler (Dask's
@@ -109,7 +109,7 @@ def segment_on_cluster(client, jobs: Sequence[Job], keep_going: bool = False, pr
     run_id = uuid.uuid4().hex
     futures = {
         client.submit(
-            _segment_task, job, run_id, index, key=f"evseg-{run_id}-{index}", retries=RETRIES
+            _segment_task, _absolute(job), run_id, index, key=f"evseg-{run_id}-{index}", retries=RETRIES
         ): index
         for index, job in enumerate(jobs)
     }
@@ -130,6 +130,11 @@ def segment_on_cluster(client, jobs: Sequence[Job], keep_going: bool = False, pr
         client.cancel(list(futures))
         client.set_metadata(run_id, None)
     return outcomes
+
+
+def _absolute(job: Job) -> Job:
+    """``job`` with absolute paths: a worker elsewhere has another working directory."""
+    return replace(job, path=job.path.absolute(), out=job.out.absolute())
 
 
 def _failed(job: Job, err: BaseException) -> EvsegError:
