@@ -116,6 +116,43 @@ def test_a_retry_does_not_resume_another_jobs_run(tmp_path, monkeypatch):
     assert error is None and summary["run"]["config"]["window"]["window_ms"] == 15.0  # overwritten, as asked
 
 
+def _die_at_the_second_window(marker):
+    """In a worker: the first task to finish its second window ends the worker process, once."""
+    import os
+
+    original, windows = runs._raise_if_stopped, []
+
+    def stop():
+        windows.append(1)
+        if len(windows) == 2 and not os.path.exists(marker):
+            open(marker, "w").close()
+            os._exit(1)  # as a killed or crashed machine would: no clean-up
+        original()
+
+    stop.original = original
+    runs._raise_if_stopped = stop
+
+
+def _live_on():
+    runs._raise_if_stopped = getattr(runs._raise_if_stopped, "original", runs._raise_if_stopped)
+
+
+def test_a_task_whose_worker_dies_resumes_on_another(tmp_path, client):
+    job = _job(tmp_path)
+    marker = tmp_path / "died"
+    client.run(_die_at_the_second_window, str(marker))
+    try:
+        [(_, summary, error)] = segment_files([job], client=client)
+    finally:
+        client.run(_live_on)
+    assert marker.exists() and error is None
+    whole = _job(tmp_path / "whole")
+    segment_file(whole)
+    resumed, uninterrupted = _written(job.out), _written(whole.out)
+    np.testing.assert_array_equal(resumed[0], uninterrupted[0])
+    assert resumed[1] == uninterrupted[1] and summary["windows"] == len(uninterrupted[1]) >= 3
+
+
 @pytest.mark.parametrize(
     ("scheduler", "message"),
     [("local:0", "at least 1"), ("local:two", "at least 1")],
