@@ -376,7 +376,7 @@ def _segment(args) -> int:
                 device=device,
             )
         )
-    with connect(args.scheduler) if args.scheduler else nullcontext() as client:
+    with connect(args.scheduler) if args.scheduler and jobs else nullcontext() as client:
         outcomes = segment_files(
             jobs, workers=args.workers, keep_going=args.keep_going, progress=not args.quiet, client=client
         )
