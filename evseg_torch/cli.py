@@ -7,6 +7,7 @@ import json
 import logging
 import signal
 import sys
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -119,6 +120,13 @@ def _parser() -> argparse.ArgumentParser:
         "as many (otherwise one process runs). The results do not change with --workers",
     )
     segment.add_argument("--topic", help="ROS bags: the topic of event arrays (default: the first by name)")
+    segment.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="segment each input as one task on a Dask cluster: a scheduler's address (tcp://host:8786) or "
+        "local:N for N single-threaded worker processes here (needs the dask extra; paths must be the same "
+        "on every worker). Results equal a run here",
+    )
     segment.add_argument(
         "--batch-size",
         type=int,
@@ -301,6 +309,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _segment(args) -> int:
+    from evseg_torch.cluster import connect
     from evseg_torch.config import SegmenterConfig, load_config
     from evseg_torch.io import resolve_sensor_size, scan_sensor_size
     from evseg_torch.runs import Job, check_input, failure, output_folders, segment_files, with_window
@@ -315,6 +324,10 @@ def _segment(args) -> int:
             raise EvsegError(f"--{name} must be a number of seconds of at least 0, got {value:g}")
     if args.start is not None and args.end is not None and args.end <= args.start:
         raise EvsegError(f"--end ({args.end:g} s) must come after --start ({args.start:g} s)")
+    if args.scheduler is not None and args.workers > 1:
+        raise EvsegError(
+            "--workers applies without --scheduler (with it, the cluster's workers share out inputs)"
+        )
     device = _device(args.device)
     config = with_window(config, args.window_ms, args.stride_ms, args.events_per_window)
     workers_per_file = 1
@@ -368,7 +381,10 @@ def _segment(args) -> int:
                 device=device,
             )
         )
-    outcomes = segment_files(jobs, workers=args.workers, keep_going=args.keep_going, progress=not args.quiet)
+    with connect(args.scheduler) if args.scheduler and jobs else nullcontext() as client:
+        outcomes = segment_files(
+            jobs, workers=args.workers, keep_going=args.keep_going, progress=not args.quiet, client=client
+        )
     for job, summary, error in outcomes:
         if error is not None:
             failed.append(error)

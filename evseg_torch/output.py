@@ -72,6 +72,19 @@ def folder_state(folder: str | Path) -> str:
     return "finished" if (folder / "summary.json").is_file() else "other"
 
 
+def holds_run(folder: str | Path, run: dict) -> bool:
+    """Whether ``folder`` holds a stopped or finished run with identity ``run`` (see SegmentationWriter)."""
+    folder = Path(folder)
+    state = folder_state(folder)
+    if state == "stopped":
+        recorded = json.loads((folder / PARTIAL / _STATE).read_text()).get("run")
+    elif state == "finished":
+        recorded = json.loads((folder / "summary.json").read_text()).get("run")
+    else:
+        return False
+    return recorded == _plain(run)
+
+
 class SegmentationWriter:
     """Write one recording's per-window results as they come; use as a context manager.
 
@@ -125,7 +138,13 @@ class SegmentationWriter:
             self._reopen()
             state = folder_state(self.folder)
         if state == "finished" and resume:
-            self.summary = json.loads((self.folder / "summary.json").read_text())
+            summary = json.loads((self.folder / "summary.json").read_text())
+            difference = _first_difference(summary.get("run", {}), self.run)
+            if difference:
+                raise ResumeError(
+                    f"{self.folder} holds finished results, but {difference}; pass --overwrite to redo them"
+                )
+            self.summary = summary
         if self.summary is not None or self.resume_point is not None:
             return
         if state != "empty":
@@ -275,7 +294,7 @@ class SegmentationWriter:
         state = json.loads((self.partial / _STATE).read_text())
         difference = _first_difference(state.get("run", {}), self.run)
         if difference:
-            raise ResumeError(f"cannot resume {self.folder}: {difference} differs from the stopped run's")
+            raise ResumeError(f"cannot resume {self.folder}: {difference}")
         if state.get("finished"):
             publish(self.folder)  # stopped while publishing
             return
@@ -375,7 +394,7 @@ def _first_difference(before, now, where: str = "") -> str | None:
                 return found
         return None
     if before != now:
-        return f"{where or 'the run'} ({_short(before)} then, {_short(now)} now)"
+        return f"{where or 'the run'} differs ({_short(before)} then, {_short(now)} now)"
     return None
 
 

@@ -9,8 +9,9 @@
 * **Stopping**: SIGTERM and SIGINT both raise :class:`Stopped` in the main process
   (:func:`stop_on_signals`); the flag it also sets is checked after every window, so an interrupt that
   lands where Python ignores exceptions (a finaliser) still stops the run at the next window.
-* **Many inputs**: one after another, or file by file in worker processes; with ``keep_going`` a bad
-  input is reported and the others are segmented (:func:`segment_files`).
+* **Many inputs**: one after another, file by file in worker processes, or one task per input on a
+  Dask cluster (:mod:`evseg_torch.cluster`); with ``keep_going`` a bad input is reported and the others
+  are segmented (:func:`segment_files`).
 """
 
 from __future__ import annotations
@@ -300,15 +301,19 @@ class TimeRange:
         return f"between {self.start_s or 0:g} s and {end}"
 
 
-def segment_files(jobs: Sequence[Job], workers: int = 1, keep_going: bool = False, progress: bool = False):
-    """Segment several recordings, one after another or file by file in ``workers`` processes.
+def segment_files(
+    jobs: Sequence[Job], workers: int = 1, keep_going: bool = False, progress: bool = False, client=None
+):
+    """Segment several recordings, one after another, file by file in ``workers`` processes, or on a cluster.
 
     Args:
         jobs: the inputs.
         workers: processes sharing out the files (one torch thread each); with one job its ``workers``
-            field shares out windows instead.
+            field shares out windows instead. Not used with ``client``.
         keep_going: report a bad input (one line) and go on with the others; otherwise stop at the first.
         progress: progress bars.
+        client: a Dask ``distributed.Client``: each job is one task on its cluster, retried if it fails
+            unexpectedly, with the results it gets here (see :mod:`evseg_torch.cluster`).
 
     Returns:
         One ``(job, summary or None, error message or None)`` per job, in order (with ``keep_going``,
@@ -319,6 +324,10 @@ def segment_files(jobs: Sequence[Job], workers: int = 1, keep_going: bool = Fals
         EvsegError: a job failed and ``keep_going`` is off.
         Stopped: a signal stopped the run.
     """
+    if client is not None:
+        from evseg_torch.cluster import segment_on_cluster
+
+        return segment_on_cluster(client, jobs, keep_going, progress)
     outcomes = []
     if workers <= 1 or len(jobs) == 1:
         for job in jobs:
@@ -334,8 +343,6 @@ def segment_files(jobs: Sequence[Job], workers: int = 1, keep_going: bool = Fals
             while not task.ready():
                 task.wait(0.2)
                 _raise_if_stopped()
-            if bar.total:
-                bar.update(bar.total - bar.n)  # the last windows may have been too sparse to segment
             outcome = task.get()
             if outcome[2] is not None and not keep_going:
                 raise EvsegError(outcome[2])

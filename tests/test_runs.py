@@ -130,11 +130,13 @@ def test_resume_refuses_changed_runs_and_re_runs_say_what_to_do(recording, tmp_p
     assert _segment(recording, "--out", out, "--sensor-size", "90x120") == 2
     assert "holds a stopped run; pass --resume to continue it or --overwrite" in _last_error(capsys)
     assert _segment(recording, "--out", out, "--sensor-size", "90x120", "--resume", "--window-ms", "20") == 2
-    assert "config.window.window_ms (30.0 then, 20.0 now) differs" in _last_error(capsys)
+    assert "config.window.window_ms differs (30.0 then, 20.0 now)" in _last_error(capsys)
     assert _segment(recording, "--out", out, "--sensor-size", "90x120", "--resume") == 0
     assert _segment(recording, "--out", out, "--sensor-size", "90x120") == 2
     assert "holds finished results; pass --overwrite" in _last_error(capsys)
     assert _segment(recording, "--out", out, "--sensor-size", "90x120", "--resume") == 0  # skips it
+    assert _segment(recording, "--out", out, "--sensor-size", "90x120", "--resume", "--max-windows", "3") == 2
+    assert "holds finished results, but options.max_windows differs (null then, 3 now)" in _last_error(capsys)
 
 
 def test_inputs_with_one_stem_get_their_own_folders(tmp_path, capsys):
