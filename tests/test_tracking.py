@@ -87,7 +87,7 @@ def test_the_background_keeps_id_0_whatever_its_cluster_index():
 
 
 def test_matching_is_one_to_one_and_gated():
-    previous = window([0, 4, 7], [WHOLE, [20, 40, 10, 10], [40, 40, 10, 10]], [[0, 0], [0, 0], [0, 0]])
+    previous = window([0, 4, 7], [WHOLE, [20, 40, 10, 10], [60, 40, 10, 10]], [[0, 0], [0, 0], [0, 0]])
     # Two clusters near object 4 (it split): one continues it, the other is new; object 7 moved too far.
     ids, next_id = match(
         previous, [WHOLE, [21, 40, 10, 10], [24, 42, 8, 8], [90, 5, 10, 10]], np.zeros((4, 2)), 0.01, 8
@@ -184,12 +184,19 @@ def one_thread():
 
 def test_objects_keep_their_ids_through_a_continuous_stream(one_thread):
     kept = []
-    for seed in (1, 5):  # spinning objects; spinning mixed with weak outlines
+    # Spinning objects, two small fast balls, spinning mixed with weak outlines: 21 of 22 kept when written.
+    for seed in (1, 2, 5):
         scene = make_family_scene("hard", seed, duration=0.15)
         results = list(CascadedSegmenter(scene.sensor_size).stream(scene.events, window_ms=30.0))
-        assert all(r.object_ids[r.shared_motion == r.shared_motion[0]].min() >= 0 for r in results)
         kept += kept_ids(results, scene)
-    assert len(kept) >= 10 and np.mean(kept) >= 0.9
+        gone, before = set(), set()
+        for result in results:
+            ids = result.object_ids.tolist()
+            assert len(set(ids)) == len(ids) and not gone & set(ids)  # unique; a vanished id never returns
+            assert ids[int(np.argmax(np.bincount(result.labels)))] == 0  # the background
+            gone |= before - set(ids)
+            before = set(ids)
+    assert len(kept) >= 15 and np.mean(kept) >= 0.88
 
 
 def test_single_windows_are_numbered_as_a_streams_first(one_thread):
