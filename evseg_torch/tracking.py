@@ -1,4 +1,4 @@
-"""Object ids that persist across a stream's windows, and which clusters share a motion (NumPy only).
+"""Object ids that persist across a stream's windows, and which clusters share a motion (NumPy, SciPy).
 
 Level two numbers a window's clusters afresh, so cluster ``k`` of one window has nothing to do with
 cluster ``k`` of the next. :class:`ObjectTracker` gives every cluster an *object id* that follows it from
@@ -29,9 +29,9 @@ window to window:
   graph cut split in two is one group.
 
 The tracker's whole state is the previous window's :class:`TrackedClusters` (ids, centres, boxes,
-models, ``t_ref``) and the next unused id, i.e. what ``models.jsonl`` stores per window (``object_ids``,
-``centres``, ``boxes``, ``models``, ``t_ref``) and one plus the largest id written: a resumed run restores it
-exactly from the stopped run's rows (:meth:`TrackedClusters.from_record`).
+models, ``t_ref``) and the next unused id, i.e. what ``models.jsonl`` stores per window
+(``object_ids``, ``centres``, ``boxes``, ``models``, ``t_ref``) and one plus the largest id written: a
+resumed run restores it exactly from the stopped run's rows (:meth:`TrackedClusters.from_record`).
 """
 
 from __future__ import annotations
@@ -39,8 +39,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.sparse.csgraph import connected_components
 
 from evseg_torch.errors import ShapeError
 
@@ -218,6 +216,10 @@ def _costs(previous, objects, now, candidates, duration, motion, gate_px, gate_s
     # Pairs beyond the gate may still be assigned; they are refused afterwards, but priced so high that
     # the assignment never trades a feasible pair for them.
     priced = np.where(cost <= gate, cost, gate.max() + cost.max() + 1e6)
+    # scipy loads on first use, so that ``import evseg_torch`` (whose results reader imports this
+    # module) stays light.
+    from scipy.optimize import linear_sum_assignment
+
     rows, cols = linear_sum_assignment(priced)
     return rows, cols, cost, gate
 
@@ -252,6 +254,8 @@ def shared_motion_groups(
             corners = np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]])
             difference = motion.velocity(corners, models[a]) - motion.velocity(corners, models[b])
             close[a, b] = close[b, a] = duration * np.linalg.norm(difference, axis=-1).max() < tolerance_px
+    from scipy.sparse.csgraph import connected_components  # on first use, as linear_sum_assignment
+
     _, component = connected_components(close, directed=False)
     lowest = np.full(n_clusters, n_clusters, dtype=np.int64)
     np.minimum.at(lowest, component, np.arange(n_clusters))
