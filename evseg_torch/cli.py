@@ -472,11 +472,13 @@ def _demo(args) -> int:
         "time_ms": result.timings_ms["total"],
     }
     # Draw each true layer in the colour of the cluster matched to it, so the two panels compare at a glance.
-    layer_to_cluster = {
-        layer: cluster for cluster, layer in match_clusters(result.labels, scene.labels).items()
+    layer_to_id = {
+        layer: int(result.object_ids[cluster])
+        for cluster, layer in match_clusters(result.labels, scene.labels).items()
     }
-    spare = iter(range(result.n_clusters, result.n_clusters + len(scene.motions)))
-    colour_of = {layer: layer_to_cluster.get(layer, next(spare)) for layer in range(len(scene.motions))}
+    first_spare = int(result.object_ids.max(initial=-1)) + 1
+    spare = iter(range(first_spare, first_spare + len(scene.motions)))
+    colour_of = {layer: layer_to_id.get(layer, next(spare)) for layer in range(len(scene.motions))}
     shown = np.array([colour_of.get(int(v), -1) for v in range(-1, len(scene.motions))])[scene.labels + 1]
     shown_metrics = {
         "clusters": f"{result.n_clusters} (true {len(scene.motions)})",
@@ -489,6 +491,7 @@ def _demo(args) -> int:
         title=f"evseg demo: synthetic scene, seed {args.seed}",
         metrics=shown_metrics,
         ground_truth=shown,
+        ids=result.object_ids,
     )
     path = write_png(image, args.out / "demo.png")
     (args.out / "metrics.json").write_text(json.dumps({**metrics, "timings_ms": result.timings_ms}, indent=2))

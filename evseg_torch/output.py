@@ -11,9 +11,10 @@ run ends, each finished file is moved into the folder by a rename, ``summary.jso
 with a ``summary.json`` and no ``.partial/`` is complete. A stopped run (killed, interrupted, out of disk)
 keeps its ``.partial/``; :class:`SegmentationWriter` with ``resume=True`` truncates the files to the last
 checkpoint and carries on from there, provided the run's identity (input file, configuration, options
-that change results) is the same; the last window's models, which the next window starts from, are read
-back from ``models.jsonl``. Video frames wait as PNGs in ``.partial/frames/`` and are encoded at the end,
-so that a resumed run's video holds every window too.
+that change results) is the same; the last window's models, which the next window starts from, and
+its clusters' object ids, centres and boxes, which the next window's ids continue
+(:mod:`evseg_torch.tracking`), are read back from ``models.jsonl``. Video frames wait as PNGs in
+``.partial/frames/`` and are encoded at the end, so that a resumed run's video holds every window too.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import numpy as np
 from evseg_torch.config import SegmenterConfig, dump_config
 from evseg_torch.errors import EvsegError
 from evseg_torch.motion import MOTION_MODELS
+from evseg_torch.tracking import TrackedClusters
 
 # Raised whenever a field is renamed, removed or changes meaning; readers refuse newer versions.
 SCHEMA_VERSION = 1
@@ -55,11 +57,15 @@ class ResumePoint:
         next_window: index of the first window still to segment.
         models: the models of the last window written, :math:`(M, P)` float64, or ``None`` if none was.
         n_windows: windows already written.
+        objects: the last window's clusters for the object tracker, or ``None`` if none was written.
+        next_object_id: one more than the largest object id written (1 if none was).
     """
 
     next_window: int
     models: np.ndarray | None
     n_windows: int
+    objects: TrackedClusters | None = None
+    next_object_id: int = 1
 
 
 def folder_state(folder: str | Path) -> str:
@@ -200,6 +206,10 @@ class SegmentationWriter:
             "parameters": list(model.param_names),
             "units": list(model.param_units),
             "models": np.asarray(segmentation.models, dtype=np.float64).tolist(),
+            "object_ids": _ints(segmentation.object_ids),
+            "shared_motion": _ints(segmentation.shared_motion),
+            "centres": _rows(segmentation.centres),
+            "boxes": _rows(segmentation.boxes),
             "n_level_one_models": len(segmentation.level_one_models),
             "timings_ms": {stage: float(v) for stage, v in segmentation.timings_ms.items()},
         }
@@ -210,10 +220,16 @@ class SegmentationWriter:
             from evseg_torch.panels import VIDEO_PANELS, render_fig1, write_png
 
             if self.save_images:
-                image = render_fig1(segmentation, title=f"window {index}")
+                image = render_fig1(segmentation, title=f"window {index}", ids=record["object_ids"])
                 write_png(image, self.partial / "images" / f"{index:06d}.png")
             if self.video:
-                frame = render_fig1(segmentation, title=f"window {index}", panels=VIDEO_PANELS, crop=False)
+                frame = render_fig1(
+                    segmentation,
+                    title=f"window {index}",
+                    ids=record["object_ids"],
+                    panels=VIDEO_PANELS,
+                    crop=False,
+                )
                 write_png(frame, self.partial / "frames" / f"{index:06d}.png")
 
     def checkpoint(self, wall_s: float = 0.0) -> None:
@@ -302,15 +318,22 @@ class SegmentationWriter:
         for name in ("labels.bin", "window.bin"):
             os.truncate(self.partial / name, 8 * self.written)
         os.truncate(self.partial / "models.jsonl", state["models_bytes"])
-        last = None
+        last, largest_id = None, 0
         with open(self.partial / "models.jsonl") as rows:
             for line in rows:
                 last = json.loads(line)
+                if "object_ids" not in last:
+                    raise ResumeError(
+                        f"cannot resume {self.folder}: its windows were written by an older evseg without "
+                        "object ids; pass --overwrite to start again"
+                    )
                 self._count(last)
+                largest_id = max([largest_id, *last["object_ids"]])
         self._open("ab", "a")
         self._next_window = state["next_window"]
         models = None if last is None else np.array(last["models"], dtype=np.float64)
-        self.resume_point = ResumePoint(self._next_window, models, self.n_windows)
+        objects = None if last is None else TrackedClusters.from_record(last)
+        self.resume_point = ResumePoint(self._next_window, models, self.n_windows, objects, largest_id + 1)
 
     def _count(self, record: dict) -> None:
         for stage, value in record["timings_ms"].items():
@@ -372,6 +395,15 @@ def publish(folder: str | Path) -> None:
                 shutil.rmtree(folder / name)
             os.replace(partial / name, folder / name)
     shutil.rmtree(partial)
+
+
+def _ints(values) -> list[int]:
+    return np.asarray(values, dtype=np.int64).tolist()
+
+
+def _rows(values) -> list:
+    """Rows of floats as lists, a row with NaN (a cluster without events) as ``None``: JSON has no NaN."""
+    return [None if np.isnan(row).any() else row.tolist() for row in np.asarray(values, dtype=np.float64)]
 
 
 def _refusal(folder: Path, state: str) -> str:

@@ -26,6 +26,13 @@ from evseg_torch.level_one.progressive_x import ProgressiveXResult, progressive_
 from evseg_torch.level_two.iwe import warp_events
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.motion import MotionModel, make_motion_model
+from evseg_torch.tracking import (
+    ObjectTracker,
+    TrackedClusters,
+    describe_clusters,
+    shared_motion_groups,
+    window_duration,
+)
 from evseg_torch.workers import WindowPool
 
 _MAX_SPAN_US = np.iinfo(np.int64).max
@@ -66,6 +73,19 @@ class Segmentation:
         events: the window's canonical events.
         offset: index of the window's first event in the stream (0 for a single window).
         window_index: the window's number in the stream (0 for a single window).
+        centres: the median ``[x, y]`` of each cluster's events warped to ``t_ref``, px, float64
+            :math:`(K, 2)`; NaN rows for clusters without events.
+        boxes: each cluster's events warped to ``t_ref``, as boxes ``[x, y, w, h]`` from the 2nd to the
+            98th percentile of x and y, px, float64 :math:`(K, 4)`; NaN rows for clusters without events.
+        object_ids: the object id of each cluster, int64 :math:`(K,)` (:mod:`evseg_torch.tracking`): 0
+            for the background (the cluster of most events, when its box covers at least half the
+            sensor), then 1, 2, ... By :meth:`CascadedSegmenter.stream`, an object keeps its id from
+            window to window and ids are never reused; a single window (:meth:`CascadedSegmenter.forward`,
+            :meth:`~CascadedSegmenter.segment_batch`) is numbered as a stream's first: the background 0,
+            the other clusters from 1 in cluster order.
+        shared_motion: which clusters share a motion, int64 :math:`(K,)`: the lowest index of the
+            clusters whose models move the points of their boxes less than 1 px apart over the window
+            (its own index when none does; :func:`~evseg_torch.tracking.shared_motion_groups`).
     """
 
     labels: np.ndarray
@@ -84,6 +104,10 @@ class Segmentation:
     events: np.ndarray
     offset: int = 0
     window_index: int = 0
+    centres: np.ndarray | None = None
+    boxes: np.ndarray | None = None
+    object_ids: np.ndarray | None = None
+    shared_motion: np.ndarray | None = None
 
     @property
     def n_clusters(self) -> int:
@@ -243,6 +267,8 @@ class CascadedSegmenter(nn.Module):
         first_window: int = 0,
         max_windows: int | None = None,
         initial_models: np.ndarray | None = None,
+        initial_objects: TrackedClusters | None = None,
+        next_object_id: int = 1,
     ) -> Iterator[Segmentation]:
         """Segment sliding windows, reusing each window's models to bootstrap the next.
 
@@ -260,10 +286,14 @@ class CascadedSegmenter(nn.Module):
                 line up with the uninterrupted stream's when it stopped after a whole batch).
             max_windows: cut only the windows of index below this (``None``: all); reading stops there.
             initial_models: models the first batch starts from, :math:`(M, P)`, as reuse would give them.
+            initial_objects: the clusters of the window before ``first_window``, whose objects the first
+                window continues (a stopped stream's last window; :mod:`evseg_torch.tracking`).
+            next_object_id: the least object id not given yet (1 plus the largest a stopped stream gave).
 
         Yields:
             :class:`Segmentation` of each window with at least ``min_events`` events; its ``offset`` and
-            ``window_index`` place it in the stream.
+            ``window_index`` place it in the stream, and its ``object_ids`` follow objects from window to
+            window (assigned here, window after window, so neither batches nor workers change them).
 
         Raises:
             ConfigError: ``batch_size`` or ``workers`` is not a positive integer, or ``workers`` exceeds
@@ -274,6 +304,7 @@ class CascadedSegmenter(nn.Module):
             ("workers", workers, 1),
             ("first_window", first_window, 0),
             ("max_windows", 1 if max_windows is None else max_windows, 1),
+            ("next_object_id", next_object_id, 1),
         ):
             if isinstance(value, bool) or not isinstance(value, Integral) or value < least:
                 raise ConfigError(f"{name} must be an integer of at least {least}, got {value!r}")
@@ -311,12 +342,14 @@ class CascadedSegmenter(nn.Module):
                         f"initial_models must be (M, {self.motion.n_params}), got {tuple(models.shape)}"
                     )
                 previous = self._plausible(models)
+            tracker = ObjectTracker(self.motion, initial_objects, next_object_id)
             for batch in _batched(kept, batch_size):
                 results = segment([window.events for window in batch], previous)
                 if self.config.level_one.reuse_models:
                     previous = self._plausible(results[-1].models)
                 for window, result in zip(batch, results, strict=True):
-                    yield replace(result, offset=window.offset, window_index=window.index)
+                    ids = tracker.update(result)
+                    yield replace(result, offset=window.offset, window_index=window.index, object_ids=ids)
 
     def _plausible(self, models: np.ndarray) -> np.ndarray:
         """The models worth reusing: a refit that diverged (no motion of this sensor) would only derail
@@ -336,10 +369,12 @@ class CascadedSegmenter(nn.Module):
             own = two.params[two.labels]
             warped = warp_events(self.motion, batch.xy[:, None], batch.t[:, None], own)[:, 0]
         labels, models, iwes, soft = two.labels, two.params, two.iwes, two.soft_assignments
+        plain_models = _numpy(models).astype(np.float64)
+        _, centres, boxes = describe_clusters(_numpy(labels), _numpy(warped), len(plain_models))
         if not as_tensors:
             labels, iwes, soft = _numpy(labels), _numpy(iwes), _numpy(soft)
-            models, warped = _numpy(models).astype(np.float64), _numpy(warped).astype(np.float64)
-        return Segmentation(
+            models, warped = plain_models, _numpy(warped).astype(np.float64)
+        result = Segmentation(
             labels=labels,
             models=models,
             motion_model=self.config.motion_model,
@@ -359,7 +394,13 @@ class CascadedSegmenter(nn.Module):
             },
             sensor_size=self.sensor_size,
             events=events,
+            centres=centres,
+            boxes=boxes,
+            shared_motion=shared_motion_groups(
+                plain_models, boxes, window_duration(events), self.motion, self.sensor_size
+            ),
         )
+        return replace(result, object_ids=ObjectTracker(self.motion).update(result))
 
     def _level_one(self, events: np.ndarray, t_ref_us: int, initial_models):
         """Features and Progressive-X; skipped in a window of one instant, on a tiny sensor, or when the

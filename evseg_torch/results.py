@@ -18,6 +18,7 @@ import numpy as np
 from evseg_torch.config import SegmenterConfig, load_config
 from evseg_torch.errors import ResultsError
 from evseg_torch.output import SCHEMA_VERSION
+from evseg_torch.tracking import TrackedClusters
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,15 @@ class WindowModels:
         models: row ``k`` is cluster ``k``'s model, float64 :math:`(K, P)`.
         n_level_one_models: size of level one's model pool.
         timings_ms: milliseconds per stage.
+        object_ids: each cluster's object id, int64 :math:`(K,)`: 0 the background, and an object keeps
+            its id from window to window (:mod:`evseg_torch.tracking`); ``None`` in results written
+            before ids existed.
+        shared_motion: each cluster's motion group, int64 :math:`(K,)`: the lowest index of the clusters
+            moving alike (within 1 px over the window); ``None`` likewise.
+        centres: the median ``[x, y]`` of each cluster's compensated events at ``t_ref``, px, float64
+            :math:`(K, 2)` (NaN for a cluster without events); ``None`` likewise.
+        boxes: each cluster's compensated events as ``[x, y, w, h]`` at ``t_ref``, px, float64
+            :math:`(K, 4)` (NaN for a cluster without events); ``None`` likewise.
     """
 
     window: int
@@ -50,6 +60,10 @@ class WindowModels:
     models: np.ndarray
     n_level_one_models: int
     timings_ms: dict[str, float]
+    object_ids: np.ndarray | None = None
+    shared_motion: np.ndarray | None = None
+    centres: np.ndarray | None = None
+    boxes: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -117,6 +131,14 @@ def load_results(folder: str | Path) -> SegmentationResults:
             units=tuple(fields["units"] or ()),
             models=np.asarray(fields["models"], dtype=np.float64).reshape(-1, n_params),
         )
+        if "object_ids" in record:
+            tracked = TrackedClusters.from_record(record)
+            fields.update(
+                object_ids=tracked.ids,
+                shared_motion=np.asarray(record["shared_motion"], dtype=np.int64),
+                centres=tracked.centres,
+                boxes=tracked.boxes,
+            )
         windows.append(WindowModels(**fields))
     video = folder / "video.mp4"
     return SegmentationResults(

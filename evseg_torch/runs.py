@@ -5,7 +5,8 @@
   (:func:`output_folders`). A folder never receives another input's results (:mod:`evseg_torch.output`).
 * **Resumable**: results go to the folder's ``.partial/`` with a checkpoint after every batch of windows
   and are published when complete; a stopped run resumes from its checkpoint and ends with the files an
-  uninterrupted run writes (windows after a checkpoint are segmented again, from the same models).
+  uninterrupted run writes (windows after a checkpoint are segmented again, from the same models, and
+  their object ids continue the last window's as they would have).
 * **Stopping**: SIGTERM and SIGINT both raise :class:`Stopped` in the main process
   (:func:`stop_on_signals`); the flag it also sets is checked after every window, so an interrupt that
   lands where Python ignores exceptions (a finaliser) still stops the run at the next window.
@@ -213,6 +214,8 @@ def segment_file(job: Job, progress: bool = False) -> dict:
             first_window=resume.next_window if resume else 0,
             max_windows=job.max_windows,
             initial_models=resume.models if resume else None,
+            initial_objects=resume.objects if resume else None,
+            next_object_id=resume.next_object_id if resume else 1,
         )
         bar = tqdm(
             total=_window_total(job),

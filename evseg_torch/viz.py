@@ -97,7 +97,9 @@ def fig1_figure(
     """
     from evseg_torch.panels import render_fig1
 
-    image = render_fig1(segmentation, title=title, metrics=metrics, ground_truth=ground_truth)
+    image = render_fig1(
+        segmentation, title=title, metrics=metrics, ground_truth=ground_truth, ids=segmentation.object_ids
+    )
     plt = _pyplot()
     fig = plt.figure(figsize=(image.shape[1] / 100, image.shape[0] / 100), dpi=100)
     fig.figimage(image)

@@ -84,6 +84,11 @@ def test_load_results_round_trip(result_folder):
         chunk = results.labels[record.first_event : record.first_event + record.n_events]
         assert chunk.min() >= 0 and chunk.max() < len(record.models)
         assert record.t_first_us <= record.t_last_us
+        n_clusters = len(record.models)
+        assert record.object_ids.shape == record.shared_motion.shape == (n_clusters,)
+        assert record.centres.shape == (n_clusters, 2) and record.boxes.shape == (n_clusters, 4)
+    ids = [set(record.object_ids.tolist()) for record in results.windows]
+    assert all(0 in window for window in ids)  # the background, in every window of this scene
     assert results.video == result_folder / "video.mp4"
     with pytest.raises(AttributeError):
         results.labels = None  # frozen
