@@ -120,3 +120,12 @@ def test_not_a_sequence(tmp_path):
         load_evimo2(tmp_path, trusted=True)
     with pytest.raises(ReaderError, match="folder of no known layout"):
         reader_for(tmp_path)
+
+
+def test_evseg_segment_takes_the_folder(tmp_path, events, masks):
+    from evseg_torch.cli import main
+
+    folder = write_evimo2(tmp_path / "seq", events, masks, _times(events))
+    assert main(["--quiet", "segment", str(folder), "--out", str(tmp_path / "out"), "--window-ms", "50"]) == 0
+    labels = np.load(tmp_path / "out" / "seq" / "labels.npz")["labels"]
+    assert labels.shape == (len(events),)
