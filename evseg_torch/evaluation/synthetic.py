@@ -45,7 +45,14 @@ class SceneScore:
 
 
 def evaluate_synthetic(
-    segmenter, seeds, *, family=None, sensor_size=(180, 240), duration=0.03, progress=False
+    segmenter,
+    seeds,
+    *,
+    family=None,
+    sensor_size=(180, 240),
+    duration=0.03,
+    progress=False,
+    true_models=False,
 ) -> list[SceneScore]:
     """Score a segmenter on the synthetic scenes of the given seeds.
 
@@ -57,6 +64,8 @@ def evaluate_synthetic(
             :data:`~evseg_torch.synthetic_families.FAMILIES`.
         sensor_size: ``(H, W)``.
         duration: seconds per scene.
+        true_models: give the segmenter each scene's true motions as ``initial_models`` (with
+            ``level_one.initial_models: replace``, level two starts from them: the true-model ceiling).
 
     Returns:
         One :class:`SceneScore` per seed.
@@ -69,9 +78,9 @@ def evaluate_synthetic(
     scores = []
     for seed in tqdm(list(seeds), desc="scenes", disable=not progress):
         if family is None:
-            scores.append(_score_default(segmenter, int(seed), sensor_size, duration))
+            scores.append(_score_default(segmenter, int(seed), sensor_size, duration, true_models))
         else:
-            scores.append(_score_family(segmenter, family, int(seed), sensor_size, duration))
+            scores.append(_score_family(segmenter, family, int(seed), sensor_size, duration, true_models))
     return scores
 
 
@@ -92,12 +101,18 @@ def summarize(scores) -> dict[str, float]:
     }
 
 
-def _score_default(segmenter, seed: int, sensor_size, duration) -> SceneScore:
+def _segment(segmenter, scene, true_models: bool):
+    if not true_models:
+        return segmenter(scene.events)
+    return segmenter(scene.events, initial_models=np.stack([motion.params for motion in scene.motions]))
+
+
+def _score_default(segmenter, seed: int, sensor_size, duration, true_models: bool) -> SceneScore:
     from evseg_torch.synthetic import make_scene
 
     n_objects = 1 + seed % 3
     scene = make_scene(sensor_size=sensor_size, duration=duration, n_objects=n_objects, rng=seed)
-    result = segmenter(scene.events)
+    result = _segment(segmenter, scene, true_models)
     truth = np.where(scene.ambiguous, -1, scene.labels)
     ious = np.array(list(per_object_iou(result.labels, truth).values()))
     return SceneScore(
@@ -112,12 +127,12 @@ def _score_default(segmenter, seed: int, sensor_size, duration) -> SceneScore:
     )
 
 
-def _score_family(segmenter, family: str, seed: int, sensor_size, duration) -> SceneScore:
+def _score_family(segmenter, family: str, seed: int, sensor_size, duration, true_models: bool) -> SceneScore:
     from evseg_torch.evaluation.labelled import score_labelling
     from evseg_torch.synthetic_families import family_kinds, make_family_scene
 
     scene = make_family_scene(family, seed, sensor_size=sensor_size, duration=duration)
-    result = segmenter(scene.events)
+    result = _segment(segmenter, scene, true_models)
     xy = np.column_stack([scene.events["x"], scene.events["y"]])
     score = score_labelling(
         result.labels, scene.labels, xy, ignore=scene.ambiguous, n_layers=len(scene.motions)

@@ -94,3 +94,17 @@ def test_summary_has_means_and_10th_percentiles():
     assert summary["accuracy"] == pytest.approx(0.725) and summary["iou"] == pytest.approx(0.45)
     assert summary["accuracy_p10"] == pytest.approx(0.545) and summary["iou_p10"] == pytest.approx(0.09)
     assert summary["detection"] == pytest.approx(0.8) and summary["detection_p10"] == 0.0
+
+
+def test_true_models_reach_the_segmenter():
+    # The true-model ceiling (benchmarks/bench_ceiling.py) hands each scene's true motions to level two.
+    given = []
+
+    def segmenter(events, initial_models):
+        given.append(initial_models)
+        return SimpleNamespace(
+            labels=np.zeros(len(events), dtype=int), n_clusters=1, timings_ms={"total": 1.0}
+        )
+
+    evaluate_synthetic(segmenter, [1], sensor_size=SIZE, duration=DURATION, true_models=True)
+    np.testing.assert_array_equal(given[0], np.stack([m.params for m in _scene(1).motions]))
