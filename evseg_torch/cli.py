@@ -311,8 +311,8 @@ def _parser() -> argparse.ArgumentParser:
 def _segment(args) -> int:
     from evseg_torch.cluster import connect
     from evseg_torch.config import SegmenterConfig, load_config
-    from evseg_torch.io import resolve_sensor_size, scan_sensor_size
-    from evseg_torch.runs import Job, check_input, failure, output_folders, segment_files, with_window
+    from evseg_torch.io import reader_for, resolve_sensor_size, scan_sensor_size
+    from evseg_torch.runs import Job, failure, output_folders, segment_files, with_window
 
     config = load_config(args.config) if args.config else SegmenterConfig()
     _check_counts(args, "batch_size", "workers", "max_windows", "chunk_size", "events_per_window")
@@ -346,7 +346,8 @@ def _segment(args) -> int:
     folders = output_folders(args.inputs, args.out)
     for name, out in zip(args.inputs, folders, strict=True):
         try:
-            path = check_input(name)
+            reader_for(name)  # a file of a known format or a folder of a known layout
+            path = Path(name)
             sensor_size = resolve_sensor_size(path, args.sensor_size, topic=args.topic)
             if sensor_size is None:
                 sensor_size = scan_sensor_size(path, args.chunk_size, topic=args.topic)

@@ -51,19 +51,17 @@ class ResumeError(EvsegError):
 
 @dataclass(frozen=True)
 class ResumePoint:
-    """Where a resumed run carries on.
+    """Where a run carries on; the defaults are a fresh run's start.
 
     Attributes:
         next_window: index of the first window still to segment.
         models: the models of the last window written, :math:`(M, P)` float64, or ``None`` if none was.
-        n_windows: windows already written.
         objects: the last window's clusters for the object tracker, or ``None`` if none was written.
         next_object_id: one more than the largest object id written (1 if none was).
     """
 
-    next_window: int
-    models: np.ndarray | None
-    n_windows: int
+    next_window: int = 0
+    models: np.ndarray | None = None
     objects: TrackedClusters | None = None
     next_object_id: int = 1
 
@@ -80,15 +78,17 @@ def folder_state(folder: str | Path) -> str:
 
 def holds_run(folder: str | Path, run: dict) -> bool:
     """Whether ``folder`` holds a stopped or finished run with identity ``run`` (see SegmentationWriter)."""
-    folder = Path(folder)
-    state = folder_state(folder)
+    recorded = _recorded_run(Path(folder), folder_state(folder))
+    return recorded is not None and recorded == _plain(run)
+
+
+def _recorded_run(folder: Path, state: str) -> dict | None:
+    """The identity of the run a ``"stopped"`` or ``"finished"`` folder holds (``None`` otherwise)."""
     if state == "stopped":
-        recorded = json.loads((folder / PARTIAL / _STATE).read_text()).get("run")
-    elif state == "finished":
-        recorded = json.loads((folder / "summary.json").read_text()).get("run")
-    else:
-        return False
-    return recorded == _plain(run)
+        return json.loads((folder / PARTIAL / _STATE).read_text()).get("run", {})
+    if state == "finished":
+        return json.loads((folder / "summary.json").read_text()).get("run", {})
+    return None
 
 
 class SegmentationWriter:
@@ -105,8 +105,8 @@ class SegmentationWriter:
         save_images: also write one figure per window into ``images/``.
         video: also write ``video.mp4``, one frame per window (needs the ``video`` extra).
         overwrite: replace this input's existing results, finished or stopped.
-        resume: continue a stopped run from its last checkpoint (:attr:`resume_point`); for a finished
-            run nothing is written and :attr:`summary` holds its summary.
+        resume: continue a stopped run from its last checkpoint (:attr:`resume_point`, which is a fresh
+            start's otherwise); for a finished run nothing is written and :attr:`summary` holds its summary.
 
     Raises:
         OutputExistsError: the folder holds results and neither ``overwrite`` nor ``resume`` applies, or it
@@ -136,22 +136,20 @@ class SegmentationWriter:
         self.timings: dict[str, list[float]] = {}
         self.written = self.n_windows = 0
         self.wall_s = 0.0
-        self.resume_point: ResumePoint | None = None
+        self.resume_point = ResumePoint()
         self.summary: dict | None = None
         state = folder_state(self.folder)
         self._check_owner(state)
-        if state == "stopped" and resume:
-            self._reopen()
-            state = folder_state(self.folder)
+        if state == "stopped" and resume and self._reopen():
+            return
+        state = folder_state(self.folder)  # a run stopped while publishing is finished now
         if state == "finished" and resume:
-            summary = json.loads((self.folder / "summary.json").read_text())
-            difference = _first_difference(summary.get("run", {}), self.run)
+            difference = _first_difference(_recorded_run(self.folder, state), self.run)
             if difference:
                 raise ResumeError(
                     f"{self.folder} holds finished results, but {difference}; pass --overwrite to redo them"
                 )
-            self.summary = summary
-        if self.summary is not None or self.resume_point is not None:
+            self.summary = json.loads((self.folder / "summary.json").read_text())
             return
         if state != "empty":
             if not overwrite:
@@ -182,22 +180,22 @@ class SegmentationWriter:
         """Record one window's :class:`~evseg_torch.pipeline.Segmentation`.
 
         Args:
-            segmentation: the window; its ``offset`` is its first event's index in the input.
+            segmentation: the window; its ``offset`` is its first event's index among the events the
+                labels cover.
             first_event: index in the input of the first event the labels cover (the same every call).
         """
         index, offset = segmentation.window_index, segmentation.offset
         labels = np.asarray(segmentation.labels, dtype=np.int64)
-        position = offset - first_event
-        if position > self.written:
-            self._write_labels(np.full(position - self.written, -1), np.full(position - self.written, -1))
-        fresh = labels[max(self.written - position, 0) :]
+        if offset > self.written:
+            self._write_labels(np.full(offset - self.written, -1), np.full(offset - self.written, -1))
+        fresh = labels[max(self.written - offset, 0) :]
         self._write_labels(fresh, np.full(len(fresh), index))
         model = MOTION_MODELS[segmentation.motion_model]
         times = segmentation.events["t"]
         record = {
             "schema_version": SCHEMA_VERSION,
             "window": index,
-            "first_event": int(offset),
+            "first_event": int(first_event + offset),
             "n_events": len(labels),
             "t_first_us": int(times[0]) if len(times) else None,
             "t_last_us": int(times[-1]) if len(times) else None,
@@ -305,15 +303,16 @@ class SegmentationWriter:
             if wanted:
                 (self.partial / name).mkdir(exist_ok=True)
 
-    def _reopen(self) -> None:
-        """Truncate a stopped run's files to its last checkpoint and carry on from there."""
+    def _reopen(self) -> bool:
+        """Truncate a stopped run's files to its last checkpoint and carry on from there; ``False`` when
+        the run had finished and was stopped while publishing (which this completes)."""
         state = json.loads((self.partial / _STATE).read_text())
         difference = _first_difference(state.get("run", {}), self.run)
         if difference:
             raise ResumeError(f"cannot resume {self.folder}: {difference}")
         if state.get("finished"):
-            publish(self.folder)  # stopped while publishing
-            return
+            publish(self.folder)
+            return False
         self.written, self.wall_s = state["written"], state["wall_s"]
         for name in ("labels.bin", "window.bin"):
             os.truncate(self.partial / name, 8 * self.written)
@@ -333,7 +332,8 @@ class SegmentationWriter:
         self._next_window = state["next_window"]
         models = None if last is None else np.array(last["models"], dtype=np.float64)
         objects = None if last is None else TrackedClusters.from_record(last)
-        self.resume_point = ResumePoint(self._next_window, models, self.n_windows, objects, largest_id + 1)
+        self.resume_point = ResumePoint(self._next_window, models, objects, largest_id + 1)
+        return True
 
     def _count(self, record: dict) -> None:
         for stage, value in record["timings_ms"].items():
@@ -356,13 +356,10 @@ class SegmentationWriter:
 
     def _check_owner(self, state: str) -> None:
         """Refuse, whatever the flags, to replace or resume another input's results."""
-        if state not in ("finished", "stopped") or "input" not in self.run:
+        recorded = _recorded_run(self.folder, state)
+        if recorded is None or "input" not in self.run:
             return
-        if state == "finished":
-            theirs = json.loads((self.folder / "summary.json").read_text()).get("run", {}).get("input")
-        else:
-            theirs = json.loads((self.partial / _STATE).read_text()).get("run", {}).get("input")
-        ours = self.run["input"]
+        theirs, ours = recorded.get("input"), self.run["input"]
         if theirs is not None and theirs.get("path") != ours.get("path"):
             raise OutputExistsError(
                 f"output folder {self.folder} holds the results of {theirs.get('path')}, not of "

@@ -24,7 +24,7 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -211,15 +211,15 @@ def segment_file(job: Job, progress: bool = False) -> dict:
             chunks,
             batch_size=job.batch_size,
             workers=job.workers,
-            first_window=resume.next_window if resume else 0,
+            first_window=resume.next_window,
             max_windows=job.max_windows,
-            initial_models=resume.models if resume else None,
-            initial_objects=resume.objects if resume else None,
-            next_object_id=resume.next_object_id if resume else 1,
+            initial_models=resume.models,
+            initial_objects=resume.objects,
+            next_object_id=resume.next_object_id,
         )
         bar = tqdm(
             total=_window_total(job),
-            initial=resume.next_window if resume else 0,
+            initial=resume.next_window,
             desc=job.path.name,
             unit=" windows",
             disable=not progress,
@@ -227,7 +227,7 @@ def segment_file(job: Job, progress: bool = False) -> dict:
         )
         with bar:
             for result in results:
-                writer.add(replace(result, offset=result.offset + chunks.skipped), chunks.skipped)
+                writer.add(result, first_event=chunks.skipped)
                 bar.update(result.window_index + 1 - bar.n)
                 if writer.n_windows % job.batch_size == 0:
                     now = time.perf_counter()
@@ -380,19 +380,6 @@ def _file_worker() -> None:
 
     worker_signals()
     torch.set_num_threads(1)
-
-
-def check_input(path: str | Path) -> Path:
-    """``path`` as a :class:`~pathlib.Path` if it names a recording some reader takes (a file by its
-    suffix, a folder by its layout), without reading its events.
-
-    Raises:
-        ReaderError: missing, of an unknown format, or a folder of no known layout.
-    """
-    from evseg_torch.io import reader_for
-
-    reader_for(path)
-    return Path(path)
 
 
 def with_window(config: SegmenterConfig, window_ms=None, stride_ms=None, events_per_window=None):

@@ -50,3 +50,13 @@ def real_data() -> Path:
     if not REAL_DATA.is_dir():
         pytest.skip(f"real recordings not found at {REAL_DATA}")
     return REAL_DATA
+
+
+@pytest.fixture
+def one_thread():
+    """One torch thread: batched and solo level two agree bit for bit only when torch splits no reduction
+    across threads."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -221,15 +221,6 @@ def test_segment_batch_equals_windows_one_by_one(scene):
         segmenter.segment_batch(windows, initial_models=[None])
 
 
-@pytest.fixture
-def one_thread():
-    """Batched and solo level two agree bit for bit only when torch splits no reduction across threads."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_stream_in_batches_places_every_window(one_thread):
     scene = make_scene((180, 240), 0.12, n_objects=1, rng=4)
     segmenter = CascadedSegmenter((180, 240))

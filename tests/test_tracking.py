@@ -8,7 +8,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
 
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.events import EVENT_DTYPE
@@ -173,14 +172,6 @@ def kept_ids(results, scene) -> list[bool]:
         for layer in before
         if layer in after
     ]
-
-
-@pytest.fixture
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def test_objects_keep_their_ids_through_a_continuous_stream(one_thread):
