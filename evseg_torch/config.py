@@ -274,6 +274,15 @@ class LevelTwoConfig(_Section):
         discovery_min_gain: a proposal is kept only if it raises its region's contrast by at least this
             fraction over the region's own cluster's model (0: it must not lower it).
         discovery_max_iter: optimiser iterations of each proposal's contrast-maximisation fit.
+        objects: a non-background cluster is one object (beyond the paper; see
+            :mod:`evseg_torch.level_two.objects`): each label pays ``object_support_cost`` per event
+            compensated outside its support, and settled clusters of separate object groups are split;
+            ``false`` gives the paper's clusters, one per motion.
+        object_support_cost: data-cost units (of 255) an event pays for a non-background label whose
+            support its compensated position misses.
+        object_radius: pixels by which compensated events reach out when grouped into objects.
+        object_support_radius: pixels by which a label's support extends beyond its grouped events.
+        object_splits: how many times per window settled clusters are split into their objects.
         soft_temperature: temperature of the per-event soft assignments, a softmax of the negative data
             cost (units of the cost, 0-255; a cost difference of one temperature between two clusters
             is a factor ``e`` between their probabilities); 20 is calibrated on synthetic scenes (see
@@ -313,6 +322,11 @@ class LevelTwoConfig(_Section):
     discovery_min_gain: float = _setting(0.0, at_least=0)
     discovery_max_iter: int = _setting(20, at_least=1)
     soft_temperature: float = _setting(20.0, above=0)
+    objects: bool = True
+    object_support_cost: float = _setting(64.0, at_least=0)
+    object_radius: int = _setting(5, at_least=0)
+    object_support_radius: int = _setting(6, at_least=0)
+    object_splits: int = _setting(2, at_least=0)
 
 
 @dataclass(frozen=True)

@@ -125,6 +125,7 @@ from evseg_torch.level_two.discovery import (
 )
 from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.iwe import _batch_of_one, splat_events, warp_events
+from evseg_torch.level_two.objects import object_groups, spans_view, split_objects, support_mask
 from evseg_torch.motion import MotionModel, make_motion_model
 
 __all__ = ["DEFAULT_SOFT_TEMPERATURE", "GraphCutContrastSegmenter", "LevelTwoResult"]
@@ -238,6 +239,7 @@ class _Window:
     index: int
     events: EventBatch
     xy: np.ndarray
+    polarity: np.ndarray
     graph: PottsGraph
     sites: np.ndarray
     n_sites: int
@@ -246,7 +248,11 @@ class _Window:
     node_labels: np.ndarray | None
     rounds_left: int
     discoveries_left: int
+    splits_left: int
     history: list[float] = field(default_factory=list)
+    regions: list[np.ndarray] = field(default_factory=list)
+    objects_on: bool = False
+    support_cost: np.ndarray | None = None
     proposed_from: int | None = None
     event_cost: Tensor | None = None
     node_cost: np.ndarray | None = None
@@ -563,6 +569,7 @@ class GraphCutContrastSegmenter(nn.Module):
             index=index,
             events=events,
             xy=events.xy.detach().cpu().numpy().astype(np.int64),
+            polarity=events.p.detach().cpu().numpy(),
             graph=graph,
             sites=sites,
             n_sites=n_sites,
@@ -571,6 +578,7 @@ class GraphCutContrastSegmenter(nn.Module):
             node_labels=node_labels,
             rounds_left=self.n_iter_segmentation,
             discoveries_left=self.discovery_rounds,
+            splits_left=self.config.object_splits,
         )
 
     def _data_costs(self, batch: EventBatch, states: list[_Window], site_index: Tensor) -> None:
@@ -602,6 +610,10 @@ class GraphCutContrastSegmenter(nn.Module):
                 n_events, n_models = len(state.events), state.params.shape[0]
                 state.event_cost = cost[row, :n_events, :n_models]
                 state.node_cost = node_cost[row, : state.n_sites, :n_models].astype(np.float64)
+                if state.objects_on:
+                    support = self._support_cost(state) if state.support_cost is None else state.support_cost
+                    state.node_cost += support
+                    state.support_cost = None
 
     def _label(self, state: _Window) -> None:
         """One labelling of a window by α-expansion, then its renumbering and what comes next."""
@@ -626,14 +638,38 @@ class GraphCutContrastSegmenter(nn.Module):
         if state.proposed_from is not None and not np.any(keep >= state.proposed_from):
             state.discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
         state.proposed_from = None
+        state.regions = []
         state.labels, state.keep = labels, keep
         state.history.append(result.energy)
         done = converged or state.rounds_left == 0
-        if done and state.discoveries_left > 0:
+        if not done:
+            state.step = "refit"
+        elif state.discoveries_left > 0:
             state.discoveries_left -= 1
             state.step = "propose"
         else:
-            state.step = "stop" if done else "refit"
+            state.step = self._object_step(state)
+
+    def _object_step(self, state: _Window) -> str:
+        """What follows a settled labelling once discovery is done: the object phase
+        (:mod:`~evseg_torch.level_two.objects`). Its first step labels again with the support term, when
+        some event lies outside its own cluster's support; later ones split clusters of separate objects
+        and refit the parts, ``object_splits`` times at most; then the window stops."""
+        if not self.config.objects:
+            return "stop"
+        if not state.objects_on:
+            state.objects_on = True
+            state.support_cost = self._support_cost(state)
+            own = state.support_cost[np.arange(state.n_sites), state.node_labels]
+            if np.any(own > 0):
+                state.rounds_left = max(state.rounds_left, 1)
+                return "label"
+            state.support_cost = None
+        if state.splits_left > 0 and self._split(state):
+            state.splits_left -= 1
+            state.rounds_left = max(state.rounds_left, 1)
+            return "refit"
+        return "stop"
 
     def _discover(self, events: EventBatch, states: list[_Window]) -> None:
         """Propose models for the windows' candidate regions; a window with proposals labels again.
@@ -660,7 +696,9 @@ class GraphCutContrastSegmenter(nn.Module):
                 residual_cost=self.discovery_residual_cost,
                 radius=self.discovery_radius,
             )
-            candidates.append(self._proposal_starts(state, regions[: self.discovery_max_proposals]))
+            regions = regions[: self.discovery_max_proposals]
+            candidates.append(self._proposal_starts(state, regions))
+            state.regions = [members for _, members in regions]
         counts = [len(candidate.start) for candidate in candidates]
         fitted = [candidate.start for candidate in candidates]
         if any(counts):
@@ -672,7 +710,11 @@ class GraphCutContrastSegmenter(nn.Module):
                 members[row, : counts[row], : candidate.members.shape[1]] = candidate.members
             fitted = self.proposal_fit(events, start, members)
         for row, (state, candidate) in enumerate(zip(states, candidates, strict=True)):
-            proposed = self._accepted(candidate, fitted[row][: counts[row]])
+            accepted = self._accepted(candidate, fitted[row][: counts[row]])
+            proposed = fitted[row][: counts[row]][accepted]
+            state.regions = [
+                region for region, keep in zip(state.regions, accepted.tolist(), strict=True) if keep
+            ]
             if len(proposed):
                 # The proposals are fitted already: the next labelling decides which are used.
                 state.proposed_from = state.params.shape[0]
@@ -707,9 +749,10 @@ class GraphCutContrastSegmenter(nn.Module):
         return _Candidates(members, start, origin, own, weights)
 
     def _accepted(self, candidate: _Candidates, fitted: Tensor) -> Tensor:
-        """The fitted proposals :math:`(R, P)` of one window that sharpen their regions without collapse."""
+        """Which fitted proposals :math:`(R, P)` of one window sharpen their regions without collapse,
+        bool :math:`(R,)`."""
         if not len(fitted):
-            return fitted
+            return torch.zeros(0, dtype=torch.bool, device=fitted.device)
         with torch.no_grad():
             losses = self._region_loss(
                 candidate.own, torch.cat([candidate.origin, fitted]), candidate.weights
@@ -724,7 +767,70 @@ class GraphCutContrastSegmenter(nn.Module):
                 dim=1
             )
             keep &= (area - 1.0).abs() <= _MAX_AREA_CHANGE
-        return fitted[keep]
+        return keep
+
+    def _compensated(self, state: _Window) -> np.ndarray:
+        """Every event of the window compensated by every model of its pool, :math:`(K, N, 2)`, on the CPU."""
+        with torch.no_grad():
+            return warp_events(self.model, state.events.xy, state.events.t, state.params).cpu().numpy()
+
+    def _object_groups(self, state: _Window, warped: np.ndarray) -> dict[int, tuple[np.ndarray, int]]:
+        """The object groups (:func:`~evseg_torch.level_two.objects.object_groups`) of every labelled
+        cluster but the background's: the largest and any that spans the view, by cluster."""
+        n_labelled = state.params.shape[0] - len(state.regions)
+        background = int(np.bincount(state.labels, minlength=n_labelled).argmax())
+        groups = {}
+        for cluster in range(n_labelled):
+            members = np.flatnonzero(state.labels == cluster)
+            if cluster != background and not spans_view(state.xy[members], self.sensor_size):
+                groups[cluster] = object_groups(
+                    warped[cluster, members],
+                    state.polarity[members],
+                    self.sensor_size,
+                    radius=self.config.object_radius,
+                    min_events=self.discovery_min_events,
+                )
+        return groups
+
+    def _support_cost(self, state: _Window) -> np.ndarray:
+        """The support term (:mod:`~evseg_torch.level_two.objects`) of every site under every model of the
+        window, :math:`(S, K)`, from the current labels (a proposal's from its region)."""
+        warped = self._compensated(state)
+        height, width = self.sensor_size
+        col = np.clip(np.rint(warped[..., 0]), 0, width - 1).astype(np.int64)
+        row = np.clip(np.rint(warped[..., 1]), 0, height - 1).astype(np.int64)
+        n_labelled = state.params.shape[0] - len(state.regions)
+        cost = np.zeros((state.n_sites, state.params.shape[0]))
+        per_event = self.lambda_data * self.config.object_support_cost
+        for cluster, (group, _) in self._object_groups(state, warped).items():
+            members = np.flatnonzero(state.labels == cluster)
+            mask = support_mask(
+                warped[cluster, members], group, self.sensor_size, radius=self.config.object_support_radius
+            )
+            outside = ~mask[row[cluster], col[cluster]]
+            cost[:, cluster] = np.bincount(state.sites, weights=per_event * outside, minlength=state.n_sites)
+        for offset, members in enumerate(state.regions):
+            model = n_labelled + offset
+            mask = support_mask(
+                warped[model, members],
+                np.full(len(members), -1),
+                self.sensor_size,
+                radius=self.config.object_support_radius,
+            )
+            outside = ~mask[row[model], col[model]]
+            cost[:, model] = np.bincount(state.sites, weights=per_event * outside, minlength=state.n_sites)
+        return cost
+
+    def _split(self, state: _Window) -> bool:
+        """Split the window's clusters of separate objects, each part keeping its parent's model until its
+        refit (:func:`~evseg_torch.level_two.objects.split_objects`); whether any cluster was split."""
+        labels, parent = split_objects(state.labels, self._object_groups(state, self._compensated(state)))
+        if len(parent) == state.params.shape[0]:
+            return False
+        state.labels = labels
+        state.node_labels = _site_majority(labels, state.sites, state.n_sites)
+        state.params = state.params[torch.as_tensor(parent, device=state.params.device)]
+        return True
 
     def _region_loss(self, events: EventBatch, params: Tensor, weights: Tensor) -> Tensor:
         """Contrast loss of ``params`` (two rows per region) on the gathered regions' events."""

@@ -1,0 +1,185 @@
+r"""Objects in level two's energy: a cluster is one object, not one motion (beyond the paper).
+
+EMSGC's energy prices a *label*, so one label may cover two separate objects that move alike (its single
+label cost is cheaper than two), and may take scattered events far from its object wherever its warp
+happens to fit them. Two additions make each non-background cluster one spatially coherent object:
+
+* **support term**: each non-background label :math:`l` has a *support*, the pixels where its own events
+  land when compensated by its model: the pixels of its *object groups* (below), dilated by
+  ``support_radius``. An event whose position compensated by :math:`\theta_l` falls outside that support
+  pays ``support_cost`` more for label :math:`l`. Scattered events far from an object stop joining its
+  cluster, and one object's cluster cannot take over another, separate object's events by α-expansion
+  (it would pay for every one of them), so two objects that move alike keep two labels. The background
+  (the largest cluster) spans the view and has no support term. A label's support is rebuilt before
+  every labelling from the current labels and refitted models; a model proposed by discovery has its
+  region as its first support; the first labelling of a window has none.
+* **object split**: when a labelling has settled, a non-background cluster whose compensated events form
+  two or more object groups is split, one label per group (the parent's model, refitted on the group's
+  own events before the next labelling); then the energy decides, with its label cost per label, which
+  of the parts are worth their own label.
+
+Object groups: a cluster's compensated events are counted per pixel; pixels with fewer than two events
+in their 3×3 neighbourhood (scattered events, not an object's sharp edges) are dropped, the rest are
+dilated by ``radius`` and split into 8-connected components, and a component holding at least
+``min_events`` events is a group. A group of one polarity (fewer than ``_MIN_POLARITY`` of its events of
+the rarer sign) is an edge strip: a textureless object moving over the background fires one sign on
+its leading edge and the other on its trailing edge, two strips apart along the motion with few events
+between them. Strips are not objects of their own: each joins the nearest group of the cluster that
+carries the other sign (both polarities, or a strip of the opposite sign), so a textureless object stays
+one cluster while two objects, each carrying both signs, become two.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+__all__ = ["object_groups", "spans_view", "split_objects", "support_mask"]
+
+# Fewest events of the rarer polarity, as a fraction of a group's events, for the group to be an object
+# on its own rather than one edge strip of a textureless object.
+_MIN_POLARITY = 0.2
+# A background's events, each pixel dilated by _SPREAD_RADIUS, cover at least this fraction of the sensor.
+_BACKGROUND_SPREAD, _SPREAD_RADIUS = 0.35, 5
+
+
+def spans_view(xy: np.ndarray, sensor_size: tuple[int, int]) -> bool:
+    """Whether events :math:`(n, 2)` (integer pixels) spread like a background's: their pixels, dilated by
+    5 px, cover at least 35% of the sensor (a box would not tell two objects far apart from a background).
+
+    Such a cluster is no object: it gets no support term and is never split, whether or not it is the
+    largest (in a sparse window a fast object's model can briefly hold more events than the camera's).
+    """
+    height, width = sensor_size
+    mask = np.zeros((height, width), dtype=np.uint8)
+    mask[xy[:, 1], xy[:, 0]] = 1
+    kernel = np.ones((2 * _SPREAD_RADIUS + 1, 2 * _SPREAD_RADIUS + 1), dtype=np.uint8)
+    return float(cv2.dilate(mask, kernel).mean()) >= _BACKGROUND_SPREAD
+
+
+def object_groups(
+    warped_xy: np.ndarray, polarity: np.ndarray, sensor_size: tuple[int, int], *, radius: int, min_events: int
+) -> tuple[np.ndarray, int]:
+    """The object groups of one cluster's compensated events (module docstring).
+
+    Args:
+        warped_xy: the cluster's events compensated by its model :math:`(n, 2)`, ``x`` the column.
+        polarity: their polarities :math:`(n,)`, positive or not.
+        sensor_size: ``(H, W)``; positions outside are read at the nearest border pixel.
+        radius: dilation, in pixels, that joins nearby pixels into one component.
+        min_events: fewest events of a group.
+
+    Returns:
+        ``(group, n_groups)``: each event's group in ``[0, n_groups)``, or -1 for events in no group
+        (scattered ones, or in components too small), strips already joined to their partner groups.
+    """
+    height, width = sensor_size
+    group = np.full(len(warped_xy), -1, dtype=np.int64)
+    if len(warped_xy) < min_events:
+        return group, 0
+    col = np.clip(np.rint(warped_xy[:, 0]), 0, width - 1).astype(np.int64)
+    row = np.clip(np.rint(warped_xy[:, 1]), 0, height - 1).astype(np.int64)
+    counts = np.bincount(row * width + col, minlength=height * width).reshape(height, width)
+    # Sum over each pixel's 3x3 neighbourhood, borders read as zero.
+    dense = cv2.boxFilter(
+        counts.astype(np.float32), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT
+    )
+    core = ((counts > 0) & (dense >= 2)).astype(np.uint8)
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8)
+    n_components, component_image = cv2.connectedComponents(cv2.dilate(core, kernel), connectivity=8)
+    component = np.where(core[row, col] > 0, component_image[row, col], 0)
+    sizes = np.bincount(component, minlength=n_components)
+    kept = [c for c in range(1, n_components) if sizes[c] >= min_events]
+    if not kept:
+        return group, 0
+    positive = np.bincount(component, weights=(polarity > 0).astype(np.float64), minlength=n_components)
+    share = positive[kept] / sizes[kept]
+    sign = np.where(share >= 1 - _MIN_POLARITY, 1, np.where(share <= _MIN_POLARITY, -1, 0))
+    centre = (
+        np.stack(
+            [
+                np.bincount(component, weights=warped_xy[:, axis], minlength=n_components)[kept]
+                for axis in (0, 1)
+            ],
+            axis=1,
+        )
+        / sizes[kept, None]
+    )
+    # Each strip joins the nearest component carrying the other sign; components joined are one group.
+    parent = np.arange(len(kept))
+    for index in np.flatnonzero(sign != 0):
+        partners = np.flatnonzero(sign != sign[index])
+        if len(partners):
+            nearest = partners[np.argmin(np.linalg.norm(centre[partners] - centre[index], axis=1))]
+            _join(parent, index, nearest)
+    roots = np.array([_root(parent, index) for index in range(len(kept))])
+    _, group_of_kept = np.unique(roots, return_inverse=True)
+    lookup = np.full(n_components, -1, dtype=np.int64)
+    lookup[kept] = group_of_kept
+    return lookup[component], int(group_of_kept.max()) + 1
+
+
+def support_mask(
+    warped_xy: np.ndarray, group: np.ndarray, sensor_size: tuple[int, int], *, radius: int
+) -> np.ndarray:
+    """A cluster's support: the pixels of its grouped compensated events, dilated by ``radius``.
+
+    A cluster without groups (too small to have one) is supported where any of its events land.
+
+    Args:
+        warped_xy: the cluster's compensated events :math:`(n, 2)`.
+        group: their groups from :func:`object_groups` (-1 for none).
+        sensor_size: ``(H, W)``.
+        radius: dilation in pixels.
+
+    Returns:
+        bool :math:`(H, W)`.
+    """
+    height, width = sensor_size
+    chosen = warped_xy[group >= 0] if np.any(group >= 0) else warped_xy
+    col = np.clip(np.rint(chosen[:, 0]), 0, width - 1).astype(np.int64)
+    row = np.clip(np.rint(chosen[:, 1]), 0, height - 1).astype(np.int64)
+    mask = np.zeros((height, width), dtype=np.uint8)
+    mask[row, col] = 1
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8)
+    return cv2.dilate(mask, kernel).astype(bool)
+
+
+def split_objects(
+    labels: np.ndarray, groups: dict[int, tuple[np.ndarray, int]]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Split every cluster of two or more object groups into one cluster per group.
+
+    Args:
+        labels: cluster of each event :math:`(N,)` in ``[0, K)``.
+        groups: for some clusters ``k``, ``(group, n_groups)`` of :func:`object_groups` for the events
+            ``labels == k`` in index order.
+
+    Returns:
+        ``(labels, parent)``: the new labels (a split cluster keeps its label for its largest group and
+        its events in no group; its other groups get new labels ``K, K + 1, ...``) and the cluster each new
+        label came from, :math:`(K',)` (``parent[k] = k`` for ``k < K``).
+    """
+    n_clusters = int(labels.max()) + 1
+    labels = labels.copy()
+    parent = list(range(n_clusters))
+    for cluster, (group, n_groups) in sorted(groups.items()):
+        if n_groups < 2:
+            continue
+        members = np.flatnonzero(labels == cluster)
+        largest = np.bincount(group[group >= 0]).argmax()
+        for part in range(n_groups):
+            if part != largest:
+                labels[members[group == part]] = len(parent)
+                parent.append(cluster)
+    return labels, np.asarray(parent, dtype=np.int64)
+
+
+def _root(parent: np.ndarray, index: int) -> int:
+    while parent[index] != index:
+        index = parent[index]
+    return index
+
+
+def _join(parent: np.ndarray, first: int, second: int) -> None:
+    parent[_root(parent, first)] = _root(parent, second)
