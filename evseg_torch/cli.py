@@ -24,7 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     0 ok; 1 some inputs failed (``--keep-going``); 2 our errors; 130 stopped by SIGINT (Ctrl-C), 143
     by SIGTERM (128 + the signal's number, as shells report it).
     """
-    from evseg_torch.runs import Stopped, one_line, stop_on_signals
+    from evseg_torch.runs import Stopped, one_line, stop_on_signals, stopped_by
 
     parser = _parser()
     args = parser.parse_args(argv)
@@ -32,7 +32,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with stop_on_signals():
             _set_threads(args.threads)
-            return args.run(args) or 0
+            try:
+                return args.run(args) or 0
+            except Exception as err:
+                # A signal that lands inside an import (or other code that wraps what it catches)
+                # arrives as that code's own error, caused by our Stopped.
+                stop = stopped_by(err)
+                if stop is None:
+                    raise
+                raise stop from err
     except (EvsegError, OSError) as err:
         print(f"evseg: error: {one_line(err)}", file=sys.stderr)
         return 2

@@ -63,6 +63,17 @@ def stop_on_signals() -> Iterator[None]:
         _stop_requested.clear()
 
 
+def stopped_by(err: BaseException) -> Stopped | None:
+    """The :class:`Stopped` that ``err`` was raised from (its cause or context, at any depth), or ``None``."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, Stopped):
+            return err
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return None
+
+
 def _raise_if_stopped() -> None:
     if _stop_requested:
         raise Stopped(_stop_requested[0])

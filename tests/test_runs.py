@@ -276,3 +276,18 @@ def test_common_options_after_the_command_and_version(recording, tmp_path, capsy
     with pytest.raises(SystemExit) as stop:
         main(["--version"])
     assert stop.value.code == 0 and capsys.readouterr().out.startswith("evseg ")
+
+
+def test_a_stop_inside_an_import_is_a_stop():
+    """A signal inside an import that wraps its errors (scipy's) comes out as an ImportError caused by
+    our Stopped; stopped_by finds it, so that the CLI reports the stop (exit 143), not a traceback."""
+    from evseg_torch.runs import Stopped, stopped_by
+
+    try:
+        try:
+            raise Stopped(signal.SIGTERM)
+        except Stopped as stop:
+            raise ImportError("initialization failed") from stop
+    except ImportError as err:
+        assert stopped_by(err).signum == signal.SIGTERM
+    assert stopped_by(ValueError("not a stop")) is None

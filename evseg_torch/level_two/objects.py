@@ -25,8 +25,10 @@ dilated by ``radius`` and split into 8-connected components, and a component hol
 the rarer sign) is an edge strip: a textureless object moving over the background fires one sign on
 its leading edge and the other on its trailing edge, two strips apart along the motion with few events
 between them. Strips are not objects of their own: each joins the nearest group of the cluster that
-carries the other sign (both polarities, or a strip of the opposite sign), so a textureless object stays
-one cluster while two objects, each carrying both signs, become two.
+carries the other sign (both polarities, or a strip of the opposite sign), and a strip left without a
+partner stays with the cluster's largest group; so a textureless object stays one cluster, and the strips
+of several objects that a spurious model holds are never split into clusters of their own, while two
+objects, each carrying both signs, become two.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ __all__ = ["object_groups", "spans_view", "split_objects", "support_mask"]
 
 # Fewest events of the rarer polarity, as a fraction of a group's events, for the group to be an object
 # on its own rather than one edge strip of a textureless object.
-_MIN_POLARITY = 0.2
+_MIN_POLARITY = 0.3
 # A background's events, each pixel dilated by _SPREAD_RADIUS, cover at least this fraction of the sensor.
 _BACKGROUND_SPREAD, _SPREAD_RADIUS = 0.35, 5
 
@@ -113,6 +115,16 @@ def object_groups(
             nearest = partners[np.argmin(np.linalg.norm(centre[partners] - centre[index], axis=1))]
             _join(parent, index, nearest)
     roots = np.array([_root(parent, index) for index in range(len(kept))])
+    # A group still of one sign is a strip without a partner: not an object of its own, it stays with
+    # the largest group that carries both signs (or, where there is none, all the groups are one).
+    root_positive = np.bincount(roots, weights=positive[kept], minlength=len(kept))
+    root_size = np.bincount(roots, weights=sizes[kept], minlength=len(kept))
+    both = (root_size > 0) & (np.abs(root_positive / np.maximum(root_size, 1) - 0.5) < 0.5 - _MIN_POLARITY)
+    if np.any(both):
+        largest = int(np.argmax(np.where(both, root_size, -1)))
+        roots = np.where(both[roots], roots, largest)
+    else:
+        roots = np.zeros_like(roots)
     _, group_of_kept = np.unique(roots, return_inverse=True)
     lookup = np.full(n_components, -1, dtype=np.int64)
     lookup[kept] = group_of_kept

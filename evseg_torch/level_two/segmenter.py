@@ -34,6 +34,14 @@ like any empty model. Each window proposes at most ``discovery_max_proposals`` m
 ``discovery_rounds`` times, and stops proposing once a round's proposals were all rejected, so split,
 proposal and the label cost's merging cannot oscillate. ``discovery_rounds=0`` is the paper's level two.
 
+Objects (beyond the paper; :mod:`~evseg_torch.level_two.objects`): once discovery is done and the labels
+have settled, an *object phase* makes every non-background cluster one object. It labels again with a
+support term (a label pays ``object_support_cost`` for each event its model compensates away from the
+label's own object groups), then splits clusters whose compensated events form separate objects,
+``object_splits`` times at most, each split refitting the parts and labelling once more. It comes last so
+that the descent's early rounds, whose labels are still poor, are those of EMSGC; a support built on
+them would keep their mistakes. ``objects=False`` gives the paper's per-motion clusters.
+
 The label cost scales with the window (``label_cost_events``): :math:`\lambda_M(N) = \lambda_{label}
 \max(1, N / N_0)`. The data cost that a spurious model saves grows with the events it takes over, so a
 fixed cost lets spurious labels in on dense windows; on sparse windows (below :math:`N_0` events) the

@@ -355,7 +355,9 @@ class TestBatches:
         # How many rounds each window takes depends on floating-point paths that differ between CPUs, so
         # only what the lockstep guarantees is asserted: each window stops on its own (its rounds equal its
         # solo run's, compared above through the energy histories on the CPU), within the configured rounds.
-        limit = segmenter.n_iter_segmentation + segmenter.discovery_rounds * 2
+        # The object phase adds one labelling with the support term and one per split.
+        objects = segmenter.config.objects * (1 + segmenter.config.object_splits)
+        limit = segmenter.n_iter_segmentation + segmenter.discovery_rounds * 2 + objects
         assert all(1 <= len(result.energy_history) <= limit for result in listed)
 
     def test_groups_and_chunks_on_the_cpu(self, batch_scenes, monkeypatch):
