@@ -111,7 +111,7 @@ def table(results: dict) -> str:
         if results[name] is not None:
             summary = results[name]["summary"]
             values = [f"{summary[key]:.3f}" for key in SCENE_COLUMNS.values()]
-            lines.append(_row(name, summary["scenes"], [*values, f"{summary['time_ms_median']:.0f}"]))
+            lines.append(_row(name, int(summary["scenes"]), [*values, f"{summary['time_ms_median']:.0f}"]))
     lines.append(_row("EED detection (%)", "n", EED_COLUMNS))
     for name, row in results["eed"].items():
         lines.append(_row(name, int(row["evaluable"]), [f"{row[key]:.2f}" for key in EED_COLUMNS.values()]))

@@ -240,8 +240,11 @@ class _Window:
 
     ``sites`` maps each event to its graph-cut node (the event itself without sites), ``xy`` holds its
     integer pixels on the CPU (for discovery), ``event_cost`` the last data costs :math:`(N, K)` and
-    ``node_cost`` their sums per node for the graph cut; ``step`` is what follows the last labelling:
-    ``"refit"``, ``"propose"`` (discovery), ``"label"`` (again, with proposals) or ``"stop"``.
+    ``node_cost`` their sums per node for the graph cut (``costs_ready`` when they are set for the next
+    labelling already); ``step`` is what follows the last labelling: ``"refit"``, ``"propose"``
+    (discovery), ``"label"`` (again, with proposals or the object phase's support) or ``"stop"``.
+    ``objects_on`` once the object phase has begun, ``splits_left`` its splits still allowed, ``regions``
+    the events of each proposal (its first support).
     """
 
     index: int
@@ -260,7 +263,7 @@ class _Window:
     history: list[float] = field(default_factory=list)
     regions: list[np.ndarray] = field(default_factory=list)
     objects_on: bool = False
-    support_cost: np.ndarray | None = None
+    costs_ready: bool = False
     proposed_from: int | None = None
     event_cost: Tensor | None = None
     node_cost: np.ndarray | None = None
@@ -524,9 +527,12 @@ class GraphCutContrastSegmenter(nn.Module):
         site_index = _padded_rows([state.sites for state in states], batch.t.shape[1], device=batch.xy.device)
         active = states
         while active:
-            self._data_costs(batch, active, site_index)
-            clock.lap("data_term", active)
+            pending = [state for state in active if not state.costs_ready]
+            if pending:
+                self._data_costs(batch, pending, site_index)
+                clock.lap("data_term", pending)
             for state in active:
+                state.costs_ready = False
                 self._label(state)
                 clock.lap("labelling", [state])
             proposing = [state for state in active if state.step == "propose"]
@@ -619,9 +625,7 @@ class GraphCutContrastSegmenter(nn.Module):
                 state.event_cost = cost[row, :n_events, :n_models]
                 state.node_cost = node_cost[row, : state.n_sites, :n_models].astype(np.float64)
                 if state.objects_on:
-                    support = self._support_cost(state) if state.support_cost is None else state.support_cost
-                    state.node_cost += support
-                    state.support_cost = None
+                    state.node_cost += self._support_cost(state)
 
     def _label(self, state: _Window) -> None:
         """One labelling of a window by α-expansion, then its renumbering and what comes next."""
@@ -667,12 +671,16 @@ class GraphCutContrastSegmenter(nn.Module):
             return "stop"
         if not state.objects_on:
             state.objects_on = True
-            state.support_cost = self._support_cost(state)
-            own = state.support_cost[np.arange(state.n_sites), state.node_labels]
-            if np.any(own > 0):
+            support = self._support_cost(state)
+            if np.any(support[np.arange(state.n_sites), state.node_labels] > 0):
+                # No model moved since this labelling: its data costs stand, for the surviving models.
+                state.event_cost = state.event_cost[
+                    :, torch.as_tensor(state.keep, device=state.params.device)
+                ]
+                state.node_cost = state.node_cost[:, state.keep] + support
+                state.costs_ready = True
                 state.rounds_left = max(state.rounds_left, 1)
                 return "label"
-            state.support_cost = None
         if state.splits_left > 0 and self._split(state):
             state.splits_left -= 1
             state.rounds_left = max(state.rounds_left, 1)

@@ -171,3 +171,18 @@ def test_a_textureless_object_is_one_cluster():
     )
     shares = _clusters_of_layers(scene, [BACKGROUND, motion])
     assert shares[1].max() > 0.95 and shares[1].argmax() != shares[0].argmax(), shares
+
+
+def test_the_result_says_which_objects_share_a_motion(twins):
+    from evseg_torch.config import SegmenterConfig, replace_config
+    from evseg_torch.pipeline import CascadedSegmenter
+
+    config = replace_config(SegmenterConfig(), motion_model="translation", initial_models="replace")
+    result = CascadedSegmenter(SIZE, config)(twins.events, initial_models=np.stack([BACKGROUND, OBJECT]))
+    owners = [np.bincount(result.labels[twins.labels == layer]).argmax() for layer in (0, 1, 2)]
+    assert len(set(owners)) == 3
+    assert (
+        result.shared_motion[owners[1]] == result.shared_motion[owners[2]] != result.shared_motion[owners[0]]
+    )
+    ids = result.object_ids[owners[1:]].tolist()
+    assert len(set(ids)) == 2 and 0 not in ids  # two objects, two ids, neither the background's
