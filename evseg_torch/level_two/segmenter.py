@@ -816,23 +816,20 @@ class GraphCutContrastSegmenter(nn.Module):
         col = np.clip(np.rint(warped[..., 0]), 0, width - 1).astype(np.int64)
         row = np.clip(np.rint(warped[..., 1]), 0, height - 1).astype(np.int64)
         n_labelled = state.params.shape[0] - len(state.regions)
+        # Each supported model's events and their groups: a cluster's own, a proposal's region (no groups).
+        supported = [
+            (cluster, np.flatnonzero(state.labels == cluster), group)
+            for cluster, (group, _) in self._object_groups(state, warped).items()
+        ]
+        supported += [
+            (n_labelled + offset, members, np.full(len(members), -1))
+            for offset, members in enumerate(state.regions)
+        ]
         cost = np.zeros((state.n_sites, state.params.shape[0]))
         per_event = self.lambda_data * self.config.object_support_cost
-        for cluster, (group, _) in self._object_groups(state, warped).items():
-            members = np.flatnonzero(state.labels == cluster)
-            mask = support_mask(
-                warped[cluster, members], group, self.sensor_size, radius=self.config.object_support_radius
-            )
-            outside = ~mask[row[cluster], col[cluster]]
-            cost[:, cluster] = np.bincount(state.sites, weights=per_event * outside, minlength=state.n_sites)
-        for offset, members in enumerate(state.regions):
-            model = n_labelled + offset
-            mask = support_mask(
-                warped[model, members],
-                np.full(len(members), -1),
-                self.sensor_size,
-                radius=self.config.object_support_radius,
-            )
+        for model, members, group in supported:
+            radius = self.config.object_support_radius
+            mask = support_mask(warped[model, members], group, self.sensor_size, radius=radius)
             outside = ~mask[row[model], col[model]]
             cost[:, model] = np.bincount(state.sites, weights=per_event * outside, minlength=state.n_sites)
         return cost
