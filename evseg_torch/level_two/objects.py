@@ -36,7 +36,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["object_groups", "spans_view", "split_objects", "support_mask"]
+__all__ = ["cluster_groups", "object_groups", "spans_view", "split_objects", "support_cost", "support_mask"]
 
 # Fewest events of the rarer polarity, as a fraction of a group's events, for the group to be an object
 # on its own rather than one edge strip of a textureless object.
@@ -155,6 +155,84 @@ def support_mask(
     mask[row, col] = 1
     kernel = np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8)
     return cv2.dilate(mask, kernel).astype(bool)
+
+
+def cluster_groups(
+    warped: np.ndarray,
+    labels: np.ndarray,
+    polarity: np.ndarray,
+    xy: np.ndarray,
+    sensor_size: tuple[int, int],
+    *,
+    radius: int,
+    min_events: int,
+) -> dict[int, tuple[np.ndarray, int]]:
+    """The object groups of every cluster but the background's: the largest and any that spans the view.
+
+    Args:
+        warped: every event compensated by every cluster's model :math:`(K, N, 2)`.
+        labels: cluster of each event :math:`(N,)` in ``[0, K)``.
+        polarity: each event's polarity :math:`(N,)`.
+        xy: each event's integer pixel :math:`(N, 2)`, for :func:`spans_view`.
+        sensor_size: ``(H, W)``.
+        radius, min_events: as in :func:`object_groups`.
+
+    Returns:
+        ``{cluster: (group, n_groups)}`` of :func:`object_groups` for the events ``labels == cluster``
+        in index order.
+    """
+    background = int(np.bincount(labels, minlength=len(warped)).argmax())
+    groups = {}
+    for cluster in range(len(warped)):
+        members = np.flatnonzero(labels == cluster)
+        if cluster != background and not spans_view(xy[members], sensor_size):
+            groups[cluster] = object_groups(
+                warped[cluster, members], polarity[members], sensor_size, radius=radius, min_events=min_events
+            )
+    return groups
+
+
+def support_cost(
+    warped: np.ndarray,
+    groups: dict[int, tuple[np.ndarray, int]],
+    labels: np.ndarray,
+    regions: list[np.ndarray],
+    sensor_size: tuple[int, int],
+    *,
+    cost: float,
+    radius: int,
+) -> np.ndarray:
+    """The support term of every event under every model (module docstring).
+
+    Args:
+        warped: every event compensated by every model of the pool :math:`(K, N, 2)`: the labelled
+            clusters first, then one model per region.
+        groups: :func:`cluster_groups` of the labelled clusters; a cluster left out (the background) has
+            no support term.
+        labels: cluster of each event :math:`(N,)`.
+        regions: the events of each model after the labelled clusters (discovery's proposals): its
+            support, without groups.
+        sensor_size: ``(H, W)``.
+        cost: what an event pays for a model whose support its compensated position misses.
+        radius: dilation of a support, pixels.
+
+    Returns:
+        :math:`(N, K)`, 0 or ``cost``.
+    """
+    height, width = sensor_size
+    col = np.clip(np.rint(warped[..., 0]), 0, width - 1).astype(np.int64)
+    row = np.clip(np.rint(warped[..., 1]), 0, height - 1).astype(np.int64)
+    n_labelled = len(warped) - len(regions)
+    # Each supported model's events and their groups: a cluster's own, a proposal's region (no groups).
+    supported = [
+        (cluster, np.flatnonzero(labels == cluster), group) for cluster, (group, _) in groups.items()
+    ]
+    supported += [(n_labelled + k, members, np.full(len(members), -1)) for k, members in enumerate(regions)]
+    result = np.zeros((warped.shape[1], len(warped)))
+    for model, members, group in supported:
+        mask = support_mask(warped[model, members], group, sensor_size, radius=radius)
+        result[:, model] = cost * ~mask[row[model], col[model]]
+    return result
 
 
 def split_objects(

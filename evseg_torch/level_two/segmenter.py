@@ -133,7 +133,7 @@ from evseg_torch.level_two.discovery import (
 )
 from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.iwe import _batch_of_one, splat_events, warp_events
-from evseg_torch.level_two.objects import object_groups, spans_view, split_objects, support_mask
+from evseg_torch.level_two.objects import cluster_groups, split_objects, support_cost
 from evseg_torch.motion import MotionModel, make_motion_model
 
 __all__ = ["DEFAULT_SOFT_TEMPERATURE", "GraphCutContrastSegmenter", "LevelTwoResult"]
@@ -791,48 +791,36 @@ class GraphCutContrastSegmenter(nn.Module):
             return warp_events(self.model, state.events.xy, state.events.t, state.params).cpu().numpy()
 
     def _object_groups(self, state: _Window, warped: np.ndarray) -> dict[int, tuple[np.ndarray, int]]:
-        """The object groups (:func:`~evseg_torch.level_two.objects.object_groups`) of every labelled
-        cluster but the background's: the largest and any that spans the view, by cluster."""
-        n_labelled = state.params.shape[0] - len(state.regions)
-        background = int(np.bincount(state.labels, minlength=n_labelled).argmax())
-        groups = {}
-        for cluster in range(n_labelled):
-            members = np.flatnonzero(state.labels == cluster)
-            if cluster != background and not spans_view(state.xy[members], self.sensor_size):
-                groups[cluster] = object_groups(
-                    warped[cluster, members],
-                    state.polarity[members],
-                    self.sensor_size,
-                    radius=self.config.object_radius,
-                    min_events=self.discovery_min_events,
-                )
-        return groups
+        """:func:`~evseg_torch.level_two.objects.cluster_groups` of the window's labelled clusters."""
+        return cluster_groups(
+            warped[: state.params.shape[0] - len(state.regions)],
+            state.labels,
+            state.polarity,
+            state.xy,
+            self.sensor_size,
+            radius=self.config.object_radius,
+            min_events=self.discovery_min_events,
+        )
 
     def _support_cost(self, state: _Window) -> np.ndarray:
-        """The support term (:mod:`~evseg_torch.level_two.objects`) of every site under every model of the
-        window, :math:`(S, K)`, from the current labels (a proposal's from its region)."""
+        """The support term of every site under every model of the window, :math:`(S, K)`
+        (:func:`~evseg_torch.level_two.objects.support_cost`; a proposal's support is its region)."""
         warped = self._compensated(state)
-        height, width = self.sensor_size
-        col = np.clip(np.rint(warped[..., 0]), 0, width - 1).astype(np.int64)
-        row = np.clip(np.rint(warped[..., 1]), 0, height - 1).astype(np.int64)
-        n_labelled = state.params.shape[0] - len(state.regions)
-        # Each supported model's events and their groups: a cluster's own, a proposal's region (no groups).
-        supported = [
-            (cluster, np.flatnonzero(state.labels == cluster), group)
-            for cluster, (group, _) in self._object_groups(state, warped).items()
-        ]
-        supported += [
-            (n_labelled + offset, members, np.full(len(members), -1))
-            for offset, members in enumerate(state.regions)
-        ]
-        cost = np.zeros((state.n_sites, state.params.shape[0]))
-        per_event = self.lambda_data * self.config.object_support_cost
-        for model, members, group in supported:
-            radius = self.config.object_support_radius
-            mask = support_mask(warped[model, members], group, self.sensor_size, radius=radius)
-            outside = ~mask[row[model], col[model]]
-            cost[:, model] = np.bincount(state.sites, weights=per_event * outside, minlength=state.n_sites)
-        return cost
+        per_event = support_cost(
+            warped,
+            self._object_groups(state, warped),
+            state.labels,
+            state.regions,
+            self.sensor_size,
+            cost=self.lambda_data * self.config.object_support_cost,
+            radius=self.config.object_support_radius,
+        )
+        site_cost = np.zeros((state.n_sites, per_event.shape[1]))
+        for model in np.flatnonzero(per_event.any(axis=0)):
+            site_cost[:, model] = np.bincount(
+                state.sites, weights=per_event[:, model], minlength=state.n_sites
+            )
+        return site_cost
 
     def _split(self, state: _Window) -> bool:
         """Split the window's clusters of separate objects, each part keeping its parent's model until its

@@ -5,7 +5,14 @@ import pytest
 import torch
 
 from evseg_torch.events import to_torch
-from evseg_torch.level_two.objects import object_groups, spans_view, split_objects, support_mask
+from evseg_torch.level_two.objects import (
+    cluster_groups,
+    object_groups,
+    spans_view,
+    split_objects,
+    support_cost,
+    support_mask,
+)
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.synthetic import make_scene
 
@@ -85,6 +92,22 @@ def test_support_mask_is_the_grouped_pixels_dilated():
     assert mask.shape == SIZE and mask[20, 10] and mask[22, 12] and not mask[23, 10]
     assert not mask[100, 200]  # an event in no group is no support
     assert support_mask(xy, np.array([-1, -1]), SIZE, radius=0)[100, 200]  # unless none has a group
+
+
+def test_support_cost_charges_events_away_from_an_objects_groups():
+    rng = np.random.default_rng(8)
+    background = rng.uniform(0, 1, (3000, 2)) * [239, 179]
+    blob = _blob(rng, (120, 90), 400)
+    xy = np.concatenate([background, blob])
+    labels = np.repeat([0, 1], [3000, 400])
+    warped = np.stack([xy, xy])  # both models leave the events where they are
+    polarity = rng.choice([-1, 1], len(xy))
+    groups = cluster_groups(warped, labels, polarity, xy.astype(np.int64), SIZE, radius=5, min_events=100)
+    assert list(groups) == [1]  # the background (the largest cluster) has none
+    cost = support_cost(warped, groups, labels, [], SIZE, cost=64.0, radius=6)
+    assert np.all(cost[:, 0] == 0) and np.all(cost[3000:, 1] == 0)
+    far = np.linalg.norm(background - [120, 90], axis=1) > 20
+    assert np.all(cost[:3000][far, 1] == 64.0)
 
 
 def test_split_objects_gives_each_group_a_label():
