@@ -10,13 +10,16 @@ happens to fit them. Two additions make each non-background cluster one spatiall
   pays ``support_cost`` more for label :math:`l`. Scattered events far from an object stop joining its
   cluster, and one object's cluster cannot take over another, separate object's events by α-expansion
   (it would pay for every one of them), so two objects that move alike keep two labels. The background
-  (the largest cluster) spans the view and has no support term. A label's support is rebuilt before
-  every labelling from the current labels and refitted models; a model proposed by discovery has its
-  region as its first support; the first labelling of a window has none.
-* **object split**: when a labelling has settled, a non-background cluster whose compensated events form
-  two or more object groups is split, one label per group (the parent's model, refitted on the group's
-  own events before the next labelling); then the energy decides, with its label cost per label, which
-  of the parts are worth their own label.
+  (the largest cluster, and any whose events spread over the view: :func:`spans_view`) has no support
+  term. The term applies in level two's *object phase*, the labellings after its descent has settled
+  (:mod:`~evseg_torch.level_two.segmenter`; from the first labelling, supports built on poor early
+  labels kept their mistakes, see ``docs/objects.md``). A label's support is rebuilt before each of
+  those labellings from the current labels and refitted models; a model proposed by discovery has its
+  region as its first support.
+* **object split**: when a labelling of the object phase has settled, a non-background cluster whose
+  compensated events form two or more object groups is split, one label per group (the parent's model,
+  refitted on the group's own events before the next labelling); then the energy decides, with its
+  label cost per label, which of the parts are worth their own label.
 
 Object groups: a cluster's compensated events are counted per pixel; pixels with fewer than two events
 in their 3×3 neighbourhood (scattered events, not an object's sharp edges) are dropped, the rest are
