@@ -923,28 +923,44 @@ def _lockstep(
     threads = [threading.Thread(target=run, args=(index,), daemon=True) for index in range(len(starts))]
     for thread in threads:
         thread.start()
-    running, errors = len(threads), []
-    while running:
-        waiting = []
-        while len(waiting) < running:
+    running, errors, waiting = len(threads), [], []
+    try:
+        while running:
+            waiting = []
+            while len(waiting) < running:
+                index, message = requests.get()
+                if isinstance(message, queue.SimpleQueue):
+                    waiting.append((index, message))
+                    continue
+                running -= 1
+                if message is not None:
+                    errors.append(message)
+            if not waiting:
+                continue
+            waiting.sort(key=lambda request: request[0])
+            try:
+                replies = evaluate(
+                    [index for index, _ in waiting], [parameters[index].detach() for index, _ in waiting]
+                )
+            except BaseException as error:
+                replies = [error] * len(waiting)
+            for (_, reply_queue), reply in zip(waiting, replies, strict=True):
+                reply_queue.put(reply)
+    except BaseException as interrupt:
+        # Interrupted in this thread (a signal's Stopped while it waits): every problem gets the error
+        # and ends before it goes on, so that no thread is left inside torch while the interpreter exits
+        # (which aborts the process). A problem that already had its reply reads the error next.
+        for _, reply_queue in waiting:
+            reply_queue.put(interrupt)
+        while running:
             index, message = requests.get()
             if isinstance(message, queue.SimpleQueue):
-                waiting.append((index, message))
-                continue
-            running -= 1
-            if message is not None:
-                errors.append(message)
-        if not waiting:
-            continue
-        waiting.sort(key=lambda request: request[0])
-        try:
-            replies = evaluate(
-                [index for index, _ in waiting], [parameters[index].detach() for index, _ in waiting]
-            )
-        except BaseException as error:
-            replies = [error] * len(waiting)
-        for (_, reply_queue), reply in zip(waiting, replies, strict=True):
-            reply_queue.put(reply)
+                message.put(interrupt)
+            else:
+                running -= 1
+        for thread in threads:
+            thread.join()
+        raise
     for thread in threads:
         thread.join()
     if errors:

@@ -559,3 +559,35 @@ class TestCrops:
             assert displacement_error(model, fitted[k], alone.numpy(), own, DURATION) < 0.01
         assert displacement_error(model, start[0], truths[0], batches[0], DURATION) > 0.25
         assert displacement_error(model, fitted[0], truths[0], batches[0], DURATION) < 0.02
+
+
+def test_lockstep_interrupted_while_waiting_ends_every_thread():
+    """A signal's exception in the waiting thread (Ctrl-C, SIGTERM's Stopped) ends every problem's thread
+    before it goes on, so that no thread is left inside torch while the interpreter exits."""
+    import signal
+    import threading
+    import time
+
+    from evseg_torch.level_two.contrast import _lockstep
+
+    def optimise(parameter, closure):
+        for _ in range(200):
+            time.sleep(0.005)  # the waiting thread sits in the queue meanwhile
+            closure()
+
+    def evaluate(indices, values):
+        return [(value.sum(), torch.zeros_like(value)) for value in values]
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    before = threading.active_count()
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.1)
+        with pytest.raises(KeyboardInterrupt):
+            _lockstep([torch.zeros(2) for _ in range(3)], optimise, evaluate)
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    assert threading.active_count() == before
