@@ -901,9 +901,10 @@ def _lockstep(
     """
     parameters = [nn.Parameter(start.clone()) for start in starts]
     requests: queue.SimpleQueue = queue.SimpleQueue()
+    reply_queues = [queue.SimpleQueue() for _ in starts]
 
     def run(index: int) -> None:
-        replies: queue.SimpleQueue = queue.SimpleQueue()
+        replies = reply_queues[index]
 
         def closure() -> Tensor:
             requests.put((index, replies))
@@ -923,7 +924,7 @@ def _lockstep(
     threads = [threading.Thread(target=run, args=(index,), daemon=True) for index in range(len(starts))]
     for thread in threads:
         thread.start()
-    running, errors, waiting = len(threads), [], []
+    running, errors = len(threads), []
     try:
         while running:
             waiting = []
@@ -947,17 +948,12 @@ def _lockstep(
             for (_, reply_queue), reply in zip(waiting, replies, strict=True):
                 reply_queue.put(reply)
     except BaseException as interrupt:
-        # Interrupted in this thread (a signal's Stopped while it waits): every problem gets the error
-        # and ends before it goes on, so that no thread is left inside torch while the interpreter exits
-        # (which aborts the process). A problem that already had its reply reads the error next.
-        for _, reply_queue in waiting:
-            reply_queue.put(interrupt)
-        while running:
-            index, message = requests.get()
-            if isinstance(message, queue.SimpleQueue):
-                message.put(interrupt)
-            else:
-                running -= 1
+        # Interrupted in this thread (a signal's Stopped while it waits, perhaps between taking a request
+        # and noting it): every problem's next reply is the error, so each ends, waiting or not, before the
+        # error goes on; no thread is left inside torch while the interpreter exits (which aborts the
+        # process). Replies nobody reads any more are harmless.
+        for replies in reply_queues:
+            replies.put(interrupt)
         for thread in threads:
             thread.join()
         raise
