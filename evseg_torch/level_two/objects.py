@@ -55,11 +55,9 @@ def spans_view(xy: np.ndarray, sensor_size: tuple[int, int]) -> bool:
     Such a cluster is no object: it gets no support term and is never split, whether or not it is the
     largest (in a sparse window a fast object's model can briefly hold more events than the camera's).
     """
-    height, width = sensor_size
-    mask = np.zeros((height, width), dtype=np.uint8)
+    mask = np.zeros(sensor_size, dtype=np.uint8)
     mask[xy[:, 1], xy[:, 0]] = 1
-    kernel = np.ones((2 * _SPREAD_RADIUS + 1, 2 * _SPREAD_RADIUS + 1), dtype=np.uint8)
-    return float(cv2.dilate(mask, kernel).mean()) >= _BACKGROUND_SPREAD
+    return float(_dilate(mask, _SPREAD_RADIUS).mean()) >= _BACKGROUND_SPREAD
 
 
 def object_groups(
@@ -82,16 +80,14 @@ def object_groups(
     group = np.full(len(warped_xy), -1, dtype=np.int64)
     if len(warped_xy) < min_events:
         return group, 0
-    col = np.clip(np.rint(warped_xy[:, 0]), 0, width - 1).astype(np.int64)
-    row = np.clip(np.rint(warped_xy[:, 1]), 0, height - 1).astype(np.int64)
+    col, row = _pixels(warped_xy, sensor_size)
     counts = np.bincount(row * width + col, minlength=height * width).reshape(height, width)
     # Sum over each pixel's 3x3 neighbourhood, borders read as zero.
     dense = cv2.boxFilter(
         counts.astype(np.float32), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT
     )
     core = ((counts > 0) & (dense >= 2)).astype(np.uint8)
-    kernel = np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8)
-    n_components, component_image = cv2.connectedComponents(cv2.dilate(core, kernel), connectivity=8)
+    n_components, component_image = cv2.connectedComponents(_dilate(core, radius), connectivity=8)
     component = np.where(core[row, col] > 0, component_image[row, col], 0)
     sizes = np.bincount(component, minlength=n_components)
     kept = [c for c in range(1, n_components) if sizes[c] >= min_events]
@@ -150,14 +146,10 @@ def support_mask(
     Returns:
         bool :math:`(H, W)`.
     """
-    height, width = sensor_size
-    chosen = warped_xy[group >= 0] if np.any(group >= 0) else warped_xy
-    col = np.clip(np.rint(chosen[:, 0]), 0, width - 1).astype(np.int64)
-    row = np.clip(np.rint(chosen[:, 1]), 0, height - 1).astype(np.int64)
-    mask = np.zeros((height, width), dtype=np.uint8)
+    col, row = _pixels(warped_xy[group >= 0] if np.any(group >= 0) else warped_xy, sensor_size)
+    mask = np.zeros(sensor_size, dtype=np.uint8)
     mask[row, col] = 1
-    kernel = np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8)
-    return cv2.dilate(mask, kernel).astype(bool)
+    return _dilate(mask, radius).astype(bool)
 
 
 def cluster_groups(
@@ -222,9 +214,7 @@ def support_cost(
     Returns:
         :math:`(N, K)`, 0 or ``cost``.
     """
-    height, width = sensor_size
-    col = np.clip(np.rint(warped[..., 0]), 0, width - 1).astype(np.int64)
-    row = np.clip(np.rint(warped[..., 1]), 0, height - 1).astype(np.int64)
+    col, row = _pixels(warped, sensor_size)
     n_labelled = len(warped) - len(regions)
     # Each supported model's events and their groups: a cluster's own, a proposal's region (no groups).
     supported = [
@@ -266,6 +256,19 @@ def split_objects(
                 labels[members[group == part]] = len(parent)
                 parent.append(cluster)
     return labels, np.asarray(parent, dtype=np.int64)
+
+
+def _pixels(xy: np.ndarray, sensor_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The nearest pixel ``(column, row)`` of positions :math:`(..., 2)`, outside ones at the border."""
+    height, width = sensor_size
+    col = np.clip(np.rint(xy[..., 0]), 0, width - 1).astype(np.int64)
+    row = np.clip(np.rint(xy[..., 1]), 0, height - 1).astype(np.int64)
+    return col, row
+
+
+def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``mask`` (uint8) dilated by a square of ``2 radius + 1`` pixels."""
+    return cv2.dilate(mask, np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8))
 
 
 def _root(parent: np.ndarray, index: int) -> int:

@@ -346,26 +346,6 @@ class GraphCutContrastSegmenter(nn.Module):
         self.config = cfg = replace_settings(config or LevelTwoConfig(), **settings)
         self.sensor_size = tuple(int(v) for v in sensor_size)
         self.model = make_motion_model(model, self.sensor_size) if isinstance(model, str) else model
-        self.lambda_data = cfg.lambda_data
-        self.lambda_smooth = cfg.lambda_smooth
-        self.lambda_label = cfg.lambda_label
-        self.n_iter_segmentation = cfg.n_iter_segmentation
-        self.n_iter_labeling = cfg.n_iter_labeling
-        self.sigma = cfg.sigma
-        self.objective = cfg.objective
-        self.collapse_weight = cfg.collapse_weight
-        self.temporal_edges = cfg.temporal_edges
-        self.refit_max_events = cfg.refit_max_events
-        self.label_tol = cfg.label_tol
-        self.site_time_slices = cfg.site_time_slices
-        self.label_cost_events = cfg.label_cost_events
-        self.discovery_rounds = cfg.discovery_rounds
-        self.discovery_min_events = cfg.discovery_min_events
-        self.discovery_residual_cost = cfg.discovery_residual_cost
-        self.discovery_radius = cfg.discovery_radius
-        self.discovery_max_proposals = cfg.discovery_max_proposals
-        self.discovery_min_gain = cfg.discovery_min_gain
-        self.soft_temperature = cfg.soft_temperature
         self.data_term = DataCost(
             self.model,
             self.sensor_size,
@@ -491,9 +471,9 @@ class GraphCutContrastSegmenter(nn.Module):
             params,
             weights,
             sensor_size=self.sensor_size,
-            objective=self.objective,
-            sigma=self.sigma,
-            collapse_weight=self.collapse_weight,
+            objective=self.config.objective,
+            sigma=self.config.sigma,
+            collapse_weight=self.config.collapse_weight,
         )
 
     def _segment(
@@ -561,23 +541,23 @@ class GraphCutContrastSegmenter(nn.Module):
         labels = (
             None if init_labels is None else self._check_labels(init_labels, events, params).cpu().numpy()
         )
-        if self.site_time_slices is None:
+        if self.config.site_time_slices is None:
             edges, weights = event_graph(
-                events, sensor_size=self.sensor_size, temporal_edges=self.temporal_edges
+                events, sensor_size=self.sensor_size, temporal_edges=self.config.temporal_edges
             )
             sites = np.arange(len(events))
         else:
             sites, edges, weights = site_graph(
                 events,
                 sensor_size=self.sensor_size,
-                time_slices=self.site_time_slices,
-                temporal_edges=self.temporal_edges,
+                time_slices=self.config.site_time_slices,
+                temporal_edges=self.config.temporal_edges,
             )
         n_sites = int(sites.max()) + 1
         # Sites are numbered in row-major pixel order, already local; events are in time order.
-        graph = potts_graph(edges, weights, n_nodes=n_sites, reorder=self.site_time_slices is None)
+        graph = potts_graph(edges, weights, n_nodes=n_sites, reorder=self.config.site_time_slices is None)
         node_labels = labels
-        if labels is not None and self.site_time_slices is not None:
+        if labels is not None and self.config.site_time_slices is not None:
             node_labels = _site_majority(labels, sites, n_sites)
         return _Window(
             index=index,
@@ -590,8 +570,8 @@ class GraphCutContrastSegmenter(nn.Module):
             params=params,
             labels=labels,
             node_labels=node_labels,
-            rounds_left=self.n_iter_segmentation,
-            discoveries_left=self.discovery_rounds,
+            rounds_left=self.config.n_iter_segmentation,
+            discoveries_left=self.config.discovery_rounds,
             splits_left=self.config.object_splits,
         )
 
@@ -617,7 +597,9 @@ class GraphCutContrastSegmenter(nn.Module):
                 rows = torch.arange(len(chunk), device=own.device)[:, None]
                 nodes = n_nodes * rows + torch.where(own < 0, n_nodes - 1, own)
                 node_cost = cost.new_zeros(len(chunk) * n_nodes, cost.shape[2])
-                node_cost = node_cost.index_add_(0, nodes.flatten(), (self.lambda_data * cost).flatten(0, 1))
+                node_cost = node_cost.index_add_(
+                    0, nodes.flatten(), (self.config.lambda_data * cost).flatten(0, 1)
+                )
             # The graph cuts run on the CPU: the one copy back of each round.
             node_cost = node_cost.view(len(chunk), n_nodes, -1).cpu().numpy()
             for row, state in enumerate(chunk):
@@ -633,10 +615,10 @@ class GraphCutContrastSegmenter(nn.Module):
         result = alpha_expansion(
             state.node_cost,
             state.graph,
-            smoothness=self.lambda_smooth,
+            smoothness=self.config.lambda_smooth,
             label_cost=self._label_cost(len(state.events)),
             init_labels=state.node_labels,
-            max_cycles=self.n_iter_labeling,
+            max_cycles=self.config.n_iter_labeling,
         )
         event_labels = result.labels[state.sites]
         mapping, keep = _renumber_by_size(event_labels, state.params.shape[0])
@@ -645,7 +627,7 @@ class GraphCutContrastSegmenter(nn.Module):
         converged = (
             len(keep) == 1
             or (bool(state.history) and result.energy == state.history[-1])
-            or (state.labels is not None and _changed(state.labels, labels, keep) <= self.label_tol)
+            or (state.labels is not None and _changed(state.labels, labels, keep) <= self.config.label_tol)
         )
         if state.proposed_from is not None and not np.any(keep >= state.proposed_from):
             state.discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
@@ -708,11 +690,11 @@ class GraphCutContrastSegmenter(nn.Module):
                 state.labels,
                 own[row, : len(state.events)],
                 self.sensor_size,
-                min_events=self.discovery_min_events,
-                residual_cost=self.discovery_residual_cost,
-                radius=self.discovery_radius,
+                min_events=self.config.discovery_min_events,
+                residual_cost=self.config.discovery_residual_cost,
+                radius=self.config.discovery_radius,
             )
-            regions = regions[: self.discovery_max_proposals]
+            regions = regions[: self.config.discovery_max_proposals]
             candidates.append(self._proposal_starts(state, regions))
             state.regions = [members for _, members in regions]
         counts = [len(candidate.start) for candidate in candidates]
@@ -775,7 +757,7 @@ class GraphCutContrastSegmenter(nn.Module):
             )
             losses = losses.view(2, -1)
             # A proposal that compensates its region less sharply than the region's own model is none.
-            keep = losses[1] <= (1.0 + self.discovery_min_gain) * losses[0]
+            keep = losses[1] <= (1.0 + self.config.discovery_min_gain) * losses[0]
             # Event collapse (reference §5): a fit that shrinks or swells its region's area by more than
             # _MAX_AREA_CHANGE on average has piled events up, not found a motion.
             weights = candidate.weights
@@ -799,7 +781,7 @@ class GraphCutContrastSegmenter(nn.Module):
             state.xy,
             self.sensor_size,
             radius=self.config.object_radius,
-            min_events=self.discovery_min_events,
+            min_events=self.config.discovery_min_events,
         )
 
     def _support_cost(self, state: _Window) -> np.ndarray:
@@ -812,7 +794,7 @@ class GraphCutContrastSegmenter(nn.Module):
             state.labels,
             state.regions,
             self.sensor_size,
-            cost=self.lambda_data * self.config.object_support_cost,
+            cost=self.config.lambda_data * self.config.object_support_cost,
             radius=self.config.object_support_radius,
         )
         site_cost = np.zeros((state.n_sites, per_event.shape[1]))
@@ -841,9 +823,9 @@ class GraphCutContrastSegmenter(nn.Module):
             params,
             weights.repeat(2, 1),
             sensor_size=self.sensor_size,
-            objective=self.objective,
-            sigma=self.sigma,
-            collapse_weight=self.collapse_weight,
+            objective=self.config.objective,
+            sigma=self.config.sigma,
+            collapse_weight=self.config.collapse_weight,
         )
 
     def _refit(self, refit: ContrastMaximization, events: EventBatch, states: list[_Window]) -> None:
@@ -851,8 +833,8 @@ class GraphCutContrastSegmenter(nn.Module):
         params, _ = _padded_pools([state.params for state in states])
         labels = _padded_rows([state.labels for state in states], events.t.shape[1], device=events.xy.device)
         members = _members(labels, params.shape[1], params.dtype)
-        if self.refit_max_events is not None:
-            members = _subsample(members, self.refit_max_events)
+        if self.config.refit_max_events is not None:
+            members = _subsample(members, self.config.refit_max_events)
         with torch.enable_grad():
             fitted = refit(events, params, members).detach()
         for row, state in enumerate(states):
@@ -879,7 +861,7 @@ class GraphCutContrastSegmenter(nn.Module):
                     labels=labels[row, : len(state.events)],
                     params=state.params,
                     iwes=iwes[row, :n_models],
-                    soft_assignments=torch.softmax(final_cost / -self.soft_temperature, dim=1),
+                    soft_assignments=torch.softmax(final_cost / -self.config.soft_temperature, dim=1),
                     energy_history=tuple(state.history),
                 )
             )
@@ -888,9 +870,9 @@ class GraphCutContrastSegmenter(nn.Module):
     def _label_cost(self, n_events: int) -> float:
         """The label cost of a window of ``n_events``: ``lambda_label``, times
         ``n_events / label_cost_events`` in windows of more than ``label_cost_events`` events."""
-        if self.label_cost_events is None:
-            return self.lambda_label
-        return self.lambda_label * max(1.0, n_events / self.label_cost_events)
+        if self.config.label_cost_events is None:
+            return self.config.lambda_label
+        return self.config.lambda_label * max(1.0, n_events / self.config.label_cost_events)
 
     def _check_params(self, params, events: EventBatch) -> Tensor:
         if not isinstance(params, Tensor):

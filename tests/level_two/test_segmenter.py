@@ -98,7 +98,10 @@ class TestGraphCutContrastSegmenter:
         result = segmenter(events, pool)
         cost = segmenter.data_term(events, pool).double().numpy()
         edges, weights = event_graph(events)
-        energy = {"smoothness": segmenter.lambda_smooth, "label_cost": segmenter._label_cost(len(events))}
+        energy = {
+            "smoothness": segmenter.config.lambda_smooth,
+            "label_cost": segmenter._label_cost(len(events)),
+        }
         initial = labeling_energy(cost.argmin(1), cost, edges, weights, **energy)
         assert result.energy_history[0] <= initial
         # The reported energy is the energy of the returned labels under the initial models.
@@ -357,7 +360,7 @@ class TestBatches:
         # solo run's, compared above through the energy histories on the CPU), within the configured rounds.
         # The object phase adds one labelling with the support term and one per split.
         objects = segmenter.config.objects * (1 + segmenter.config.object_splits)
-        limit = segmenter.n_iter_segmentation + segmenter.discovery_rounds * 2 + objects
+        limit = segmenter.config.n_iter_segmentation + segmenter.config.discovery_rounds * 2 + objects
         assert all(1 <= len(result.energy_history) <= limit for result in listed)
 
     def test_groups_and_chunks_on_the_cpu(self, batch_scenes, monkeypatch):
@@ -492,7 +495,7 @@ class TestDiscovery:
             cost,
             edges,
             weights,
-            smoothness=segmenter.lambda_smooth,
+            smoothness=segmenter.config.lambda_smooth,
             label_cost=2000.0 * max(1.0, len(events) / 5000),
         )
         assert energy == pytest.approx(result.energy_history[0])
