@@ -235,13 +235,13 @@ class LevelTwoConfig(_Section):
         collapse_weight: exponent γ of the refits' event-collapse guard
             (:func:`~evseg_torch.level_two.contrast.contrast_loss`); 0 switches it off (EMSGC's plain
             objective).
-        optimizer: ``lbfgs`` (L-BFGS with strong-Wolfe line search) or ``adam`` for the refits.
+        optimizer: ``lbfgs`` (batched L-BFGS of :mod:`~evseg_torch.level_two.solver`) or ``adam``.
         max_iter: optimiser iterations of the first refit, which starts from the initial pool.
         warm_max_iter: iterations of each later refit, which starts from the previous refit's models
             (``None``: ``max_iter``).
         lr: learning rate (Adam) or initial step (L-BFGS) of the refits, in pixels of displacement;
             ``None`` (default) for the optimiser's own default, 1 for L-BFGS and 0.1 for Adam
-            (:class:`~evseg_torch.level_two.contrast.ContrastMaximization`).
+            (:class:`~evseg_torch.level_two.cmax.ContrastMaximization`).
         temporal_edges: also join consecutive events at the same pixel in the graph (EMSGC: no).
         data_normalization: ``relative`` (each event's image value divided by its best over the pool,
             floored at the pool's 90th percentile) or ``global`` (EMSGC: divided by the global maximum).
@@ -301,7 +301,7 @@ class LevelTwoConfig(_Section):
         "variance", choices=_Names("evseg_torch.level_two.contrast", "CONTRAST_OBJECTIVES")
     )
     collapse_weight: float = _setting(0.375, at_least=0)
-    optimizer: str = _setting("lbfgs", choices=_Names("evseg_torch.level_two.contrast", "OPTIMIZERS"))
+    optimizer: str = _setting("lbfgs", choices=_Names("evseg_torch.level_two.cmax", "OPTIMIZERS"))
     max_iter: int = _setting(6, at_least=1)
     warm_max_iter: int | None = _setting(3, at_least=1)
     lr: float | None = _setting(None, above=0)

@@ -1,9 +1,9 @@
 """Level two (torch): images of warped events, contrast maximisation and graph-cut event clustering."""
 
+from evseg_torch.level_two.cmax import ContrastMaximization
 from evseg_torch.level_two.contrast import (
     CONTRAST_OBJECTIVES,
     ContrastLoss,
-    ContrastMaximization,
     contrast_loss,
     image_variance,
     normalized_variance,

@@ -140,7 +140,7 @@ def centroid_velocity(events: EventBatch, weights: Tensor) -> Tensor:
     Args:
         events: ``xy`` :math:`(N, 2)` and ``t`` :math:`(N,)` shared by every set, or each set's own
             (padded) events ``xy`` :math:`(R, N, 2)`, ``t`` :math:`(R, N)` (see
-            :func:`~evseg_torch.level_two.contrast.gather_members`).
+            :func:`~evseg_torch.level_two.crops.gather_members`).
         weights: non-negative :math:`(R, N)`, one row per set.
 
     Returns:

@@ -38,8 +38,8 @@ from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.contrast import (
     DEFAULT_COLLAPSE_WEIGHT,
-    _check_padded,
-    _objective,
+    check_padded_batch,
+    objective_function,
     padded_contrast_loss,
 )
 from evseg_torch.level_two.iwe import _check_sensor_size
@@ -244,7 +244,7 @@ def _as_batch(events: EventBatch, assignments: Tensor, params: Tensor) -> tuple[
 
 
 def _check_shapes(model: MotionModel, events: EventBatch, assignments: Tensor, params: Tensor) -> None:
-    _check_padded(events)
+    check_padded_batch(events)
     batch, longest = events.t.shape
     if assignments.ndim != 3 or params.ndim != 3:
         raise ShapeError(
@@ -278,7 +278,7 @@ def _check_assignments(assignments: Tensor, mask: Tensor) -> None:
 
 
 def _check_options(objective: str, collapse_weight: float, balance_weight: float, reduction: str) -> None:
-    _objective(objective)
+    objective_function(objective)
     if not collapse_weight >= 0:
         raise ConfigError(f"collapse_weight must be >= 0, got {collapse_weight}")
     if not (math.isfinite(balance_weight) and balance_weight >= 0):

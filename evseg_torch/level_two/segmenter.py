@@ -90,8 +90,8 @@ Batches. A list or a padded batch of windows is segmented in lockstep: in each r
 every window still running come from one batched call (pools padded to the largest, padded models never
 win), their cost matrices are copied to the CPU at once, each window is labelled by its own graph cut,
 and the refits, and discovery's fits, of all windows are one batched contrast maximisation
-(:class:`~evseg_torch.level_two.contrast.ContrastMaximization`, one optimiser per window and image size,
-evaluated together). Windows that stop drop out of the later rounds. Each window's result equals its
+(:class:`~evseg_torch.level_two.cmax.ContrastMaximization`: every cluster its own problem of one
+batched solver). Windows that stop drop out of the later rounds. Each window's result equals its
 result alone: on the CPU with one intra-op thread bit for bit (the data term and the fits' sums are
 independent of the padding and of the other windows); with more threads, or on CUDA, up to the rounding
 of reductions that torch splits by the size of the whole batch, which the descent can amplify (measured
@@ -118,12 +118,9 @@ from evseg_torch.config import LevelTwoConfig, replace_settings
 from evseg_torch.errors import EventFormatError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_windows
 from evseg_torch.graphcut.alpha_expansion import PottsGraph, alpha_expansion, potts_graph
-from evseg_torch.level_two.contrast import (
-    ContrastMaximization,
-    contrast_loss,
-    gather_members,
-    warp_area_element,
-)
+from evseg_torch.level_two.cmax import ContrastMaximization
+from evseg_torch.level_two.contrast import contrast_loss, warp_area_element
+from evseg_torch.level_two.crops import gather_members
 from evseg_torch.level_two.data_term import DataCost
 from evseg_torch.level_two.discovery import (
     candidate_regions,

@@ -4,22 +4,19 @@ import torch
 
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_windows
+from evseg_torch.level_two.cmax import ContrastMaximization
 from evseg_torch.level_two.contrast import (
     CONTRAST_OBJECTIVES,
     ContrastLoss,
-    ContrastMaximization,
-    _crops,
-    _LinearWarp,
-    _lockstep,
-    _sum_ignoring_padding,
     contrast_loss,
-    gather_members,
     image_variance,
     normalized_variance,
     padded_contrast_loss,
     warp_area_element,
 )
+from evseg_torch.level_two.crops import fit_crops, gather_members
 from evseg_torch.level_two.iwe import extent_mask, splat_events
+from evseg_torch.level_two.linear_warp import LinearWarp, sum_ignoring_padding
 from evseg_torch.motion import Affine4, Rotation3D, Translation
 from tests.level_two._events import displacement_error, edge_points, moving_events
 
@@ -117,10 +114,10 @@ class TestSumIgnoringPadding:
     def test_zeros_appended_change_nothing(self, length, dtype):
         values = torch.randn(3, length, dtype=dtype, generator=torch.Generator().manual_seed(length)) * 100
         padded = torch.cat([values, torch.zeros(3, 300, dtype=dtype)], dim=1)
-        assert torch.equal(_sum_ignoring_padding(values), _sum_ignoring_padding(padded))
+        assert torch.equal(sum_ignoring_padding(values), sum_ignoring_padding(padded))
         # Another summation order: the two sums may differ by rounding in every one of up to 1000 terms.
         scale = values.abs().sum(dim=1) * length * torch.finfo(dtype).eps
-        assert torch.all((_sum_ignoring_padding(values) - values.sum(dim=1)).abs() <= scale)
+        assert torch.all((sum_ignoring_padding(values) - values.sum(dim=1)).abs() <= scale)
 
 
 class TestContrastLoss:
@@ -411,51 +408,6 @@ class TestBatchedFits:
             cmax(batch, start, weights[..., :10])
 
 
-class TestLockstep:
-    def test_each_problem_as_alone(self):
-        # Two quadratics minimised by L-BFGS in lockstep, one evaluation for both per step, land where
-        # each lands alone.
-        targets = [
-            torch.tensor([[3.0, -1.0]], dtype=torch.float64),
-            torch.tensor([[0.5, 2.0]], dtype=torch.float64),
-        ]
-        scales = [1.0, 40.0]
-
-        def optimise(parameter, closure):
-            torch.optim.LBFGS([parameter], max_iter=5, line_search_fn="strong_wolfe").step(closure)
-
-        def evaluate(problems, values):
-            replies = []
-            for problem, value in zip(problems, values, strict=True):
-                value = value.clone().requires_grad_()
-                loss = scales[problem] * ((value - targets[problem]) ** 2).sum() + (value**4).sum()
-                loss.backward()
-                replies.append((loss.detach(), value.grad))
-            return replies
-
-        starts = [torch.zeros(1, 2, dtype=torch.float64), torch.ones(1, 2, dtype=torch.float64)]
-        together = _lockstep(starts, optimise, evaluate)
-        for problem, start in enumerate(starts):
-            alone = _lockstep([start], optimise, lambda _, values, p=problem: evaluate([p], values))[0]
-            assert torch.equal(together[problem], alone)
-
-    def test_errors_reach_the_caller(self):
-        def optimise(parameter, closure):
-            torch.optim.LBFGS([parameter], max_iter=3).step(closure)
-
-        def evaluate(problems, values):
-            raise ValueError("no objective")
-
-        with pytest.raises(ValueError, match="no objective"):
-            _lockstep([torch.zeros(2), torch.ones(2)], optimise, evaluate)
-
-        def failing(parameter, closure):
-            raise RuntimeError("optimiser failed")
-
-        with pytest.raises(RuntimeError, match="optimiser failed"):
-            _lockstep([torch.zeros(2)], failing, evaluate)
-
-
 def _corner_and_sensor(seed=0, corner=True):
     """Translating edges: a blob in the top-left corner, one spanning the sensor and (``corner``) a
     smaller blob in the bottom-right corner, shuffled together; with one-hot weights and 30% off starts."""
@@ -510,8 +462,8 @@ class TestCrops:
     def test_small_clusters_share_a_crop(self):
         model, *_, events, weights, start = _corner_and_sensor()
         own, padded = gather_members(events, weights)
-        warp = _LinearWarp.build(model, own, with_area=False)
-        fits, origin = _crops(warp, padded, start, SIZE, torch.zeros(3, dtype=torch.long))
+        warp = LinearWarp.build(model, own, with_area=False)
+        fits, origin = fit_crops(warp, padded, start, SIZE, torch.zeros(3, dtype=torch.long))
         height, width = SIZE
         assert [rows.tolist() for rows, _ in fits] == [[0, 2], [1]]
         (_, small_size), (_, whole_size) = fits
@@ -534,15 +486,15 @@ class TestCrops:
         # The same clusters in two windows of a batch: each window gets its own fits, crops first.
         model, *_, events, weights, start = _corner_and_sensor()
         own, padded = gather_members(events, weights)
-        warp = _LinearWarp.build(model, own, with_area=False)
+        warp = LinearWarp.build(model, own, with_area=False)
         twice = warp.rows(torch.tensor([0, 1, 2, 0, 1, 2]))
         window = torch.tensor([0, 0, 0, 1, 1, 1])
-        fits, origin = _crops(twice, padded.repeat(2, 1), start.repeat(2, 1), SIZE, window)
+        fits, origin = fit_crops(twice, padded.repeat(2, 1), start.repeat(2, 1), SIZE, window)
         assert [rows.tolist() for rows, _ in fits] == [[0, 2], [1], [3, 5], [4]]
         assert fits[0][1] == fits[2][1] and fits[1][1] == fits[3][1] == SIZE
         torch.testing.assert_close(origin[:3], origin[3:])
         # Not cropped: one fit per window, on the whole sensor.
-        fits, origin = _crops(twice, padded.repeat(2, 1), start.repeat(2, 1), SIZE, window, cropped=False)
+        fits, origin = fit_crops(twice, padded.repeat(2, 1), start.repeat(2, 1), SIZE, window, cropped=False)
         assert [(rows.tolist(), size) for rows, size in fits] == [([0, 1, 2], SIZE), ([3, 4, 5], SIZE)]
         assert torch.all(origin == 0)
 
@@ -559,35 +511,3 @@ class TestCrops:
             assert displacement_error(model, fitted[k], alone.numpy(), own, DURATION) < 0.01
         assert displacement_error(model, start[0], truths[0], batches[0], DURATION) > 0.25
         assert displacement_error(model, fitted[0], truths[0], batches[0], DURATION) < 0.02
-
-
-def test_lockstep_interrupted_while_waiting_ends_every_thread():
-    """A signal's exception in the waiting thread (Ctrl-C, SIGTERM's Stopped) ends every problem's thread
-    before it goes on, so that no thread is left inside torch while the interpreter exits."""
-    import signal
-    import threading
-    import time
-
-    from evseg_torch.level_two.contrast import _lockstep
-
-    def optimise(parameter, closure):
-        for _ in range(200):
-            time.sleep(0.005)  # the waiting thread sits in the queue meanwhile
-            closure()
-
-    def evaluate(indices, values):
-        return [(value.sum(), torch.zeros_like(value)) for value in values]
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
-
-    before = threading.active_count()
-    previous = signal.signal(signal.SIGALRM, interrupt)
-    try:
-        signal.setitimer(signal.ITIMER_REAL, 0.1)
-        with pytest.raises(KeyboardInterrupt):
-            _lockstep([torch.zeros(2) for _ in range(3)], optimise, evaluate)
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-    assert threading.active_count() == before

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.contrast import gather_members
+from evseg_torch.level_two.crops import gather_members
 from evseg_torch.level_two.discovery import (
     bisect,
     candidate_regions,
