@@ -17,7 +17,6 @@ from torch import Tensor, nn
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.contrast import (
-    CONTRAST_OBJECTIVES,
     DEFAULT_COLLAPSE_WEIGHT,
     REFERENCE_OBJECTIVES,
     check_padded_batch,
@@ -299,7 +298,7 @@ class _FitSet:
             conditioned / rows.scale,
             rows.weights,
             self.size,
-            CONTRAST_OBJECTIVES[cmax.objective],
+            cmax.objective,
             cmax.sigma,
             cmax.collapse_weight,
             rows.reference,

@@ -37,6 +37,7 @@ from evseg_torch.config import LevelTwoConfig
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.iwe import _check_sensor_size, extent_mask, splat_events
+from evseg_torch.level_two.iwe_variance import iwe_variance
 from evseg_torch.level_two.linear_warp import LinearWarp, sum_ignoring_padding
 from evseg_torch.motion import MotionModel
 
@@ -155,7 +156,7 @@ def contrast_loss(
         >>> contrast_loss(Affine4((8, 8)), events, torch.zeros(3, 4)).shape
         torch.Size([3])
     """
-    contrast_fn = objective_function(objective)
+    objective_function(objective)
     if not collapse_weight >= 0:
         raise ConfigError(f"collapse_weight must be >= 0, got {collapse_weight}")
     sensor_size = sensor_size or model.sensor_size
@@ -169,7 +170,7 @@ def contrast_loss(
         reference = splat_events(events.xy, sensor_size, weights, sigma)
     warp = LinearWarp.build(model, events, with_area=collapse_weight > 0)
     return warped_contrast_loss(
-        warp, params, weights, sensor_size, contrast_fn, sigma, collapse_weight, reference
+        warp, params, weights, sensor_size, objective, sigma, collapse_weight, reference
     )
 
 
@@ -202,21 +203,31 @@ def warped_contrast_loss(
     params: Tensor,
     weights: Tensor | None,
     sensor_size: tuple[int, int],
-    contrast_fn: Callable[..., Tensor],
+    objective: str,
     sigma: float,
     collapse_weight: float,
     reference: Tensor | None,
     extent: Tensor | None = None,
 ) -> Tensor:
-    """Negative contrasts; with ``extent`` :math:`(K, 2)`, each cluster's image is only its extent of the
-    ``sensor_size`` canvas (see :func:`~evseg_torch.level_two.iwe.splat_events`)."""
+    """Negative contrasts :math:`(...)` of warped events, ``objective`` a key of
+    :data:`CONTRAST_OBJECTIVES`; with ``extent`` :math:`(..., 2)`, each cluster's image is only its extent
+    of the ``sensor_size`` canvas (see :func:`~evseg_torch.level_two.iwe.splat_events`)."""
     if collapse_weight > 0:
         votes = warp.area(params).clamp_min(_MIN_AREA) ** collapse_weight
         weights = votes if weights is None else votes * weights
-    images = splat_events(warp.warped(params), sensor_size, weights, sigma, extent=extent)
-    if extent is None:
-        return -contrast_fn(images, reference)
-    return -contrast_fn(images, reference, mask=extent_mask(extent, sensor_size))
+    warped = warp.warped(params)  # (..., n, 2)
+    lead = warped.shape[:-2]
+    weights = warped.new_ones(()) if weights is None else weights
+    weights = weights.expand(warped.shape[:-1]).reshape(-1, warped.shape[-2])
+    if extent is not None:
+        extent = extent.expand(*lead, 2).reshape(-1, 2)
+    # Splat, blur and variance as one autograd node (iwe_variance).
+    variance = iwe_variance(warped.reshape(-1, *warped.shape[-2:]), weights, sensor_size, sigma, extent)
+    variance = variance.view(lead)
+    if objective not in REFERENCE_OBJECTIVES:
+        return -variance
+    mask = None if extent is None else extent_mask(extent, sensor_size).view(*lead, *sensor_size)
+    return -variance / image_variance(reference, mask=mask)
 
 
 def padded_contrast_loss(
@@ -262,7 +273,7 @@ def padded_contrast_loss(
         >>> padded_contrast_loss(Affine4((8, 8)), batch_windows([one, two]), torch.zeros(2, 3, 4)).shape
         torch.Size([2, 3])
     """
-    contrast_fn = objective_function(objective)
+    objective_function(objective)
     if not collapse_weight >= 0:
         raise ConfigError(f"collapse_weight must be >= 0, got {collapse_weight}")
     check_padded_batch(events)
@@ -286,7 +297,7 @@ def padded_contrast_loss(
         reference = splat_events(shared.xy, sensor_size, weights, sigma)
     warp = LinearWarp.build(model, shared, with_area=collapse_weight > 0)
     return warped_contrast_loss(
-        warp, params, weights, sensor_size, contrast_fn, sigma, collapse_weight, reference
+        warp, params, weights, sensor_size, objective, sigma, collapse_weight, reference
     )
 
 
