@@ -320,7 +320,7 @@ class LevelTwoConfig(_Section):
     discovery_radius: int = _setting(2, at_least=0)
     discovery_max_proposals: int = _setting(8, at_least=1)
     discovery_min_gain: float = _setting(0.0, at_least=0)
-    discovery_max_iter: int = _setting(12, at_least=1)
+    discovery_max_iter: int = _setting(20, at_least=1)
     soft_temperature: float = _setting(20.0, above=0)
     objects: bool = True
     object_support_cost: float = _setting(64.0, at_least=0)

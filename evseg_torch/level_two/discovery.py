@@ -28,15 +28,28 @@ the model of the cluster it came from moved to that velocity, its rotation and s
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import cv2
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
+from evseg_torch.config import LevelTwoConfig
 from evseg_torch.events import EventBatch
+from evseg_torch.level_two.cmax import ContrastMaximization
+from evseg_torch.level_two.contrast import contrast_loss, warp_area_element
+from evseg_torch.level_two.crops import gather_members
+from evseg_torch.level_two.window_state import WindowState, subsample
 from evseg_torch.motion import MotionModel
 
-__all__ = ["bisect", "candidate_regions", "centroid_velocity", "recentred", "translation_params"]
+__all__ = ["Discovery", "bisect", "candidate_regions", "centroid_velocity", "recentred", "translation_params"]
+
+# A proposal only needs to show whether a region has a sharper motion of its own; an even subsample of
+# this many events per region finds it, at a fraction of the cost of fitting whole regions.
+_PROPOSAL_MAX_EVENTS = 1500
+# Largest mean change of its region's area (the warp's area element) a proposal may make.
+_MAX_AREA_CHANGE = 0.1
 
 
 def candidate_regions(
@@ -203,3 +216,147 @@ def _rows(value: Tensor, weights: Tensor) -> Tensor:
     if value.shape[:2] == weights.shape:
         return value
     return value.expand(weights.shape[0], *value.shape)
+
+
+class _Candidates(NamedTuple):
+    """One window's candidate regions for discovery: their members :math:`(R, N)` (an even subsample),
+    the start of each one's fit and the model of the cluster it came from :math:`(R, P)`, and its
+    gathered events and weights :math:`(R, n)`."""
+
+    members: Tensor
+    start: Tensor
+    origin: Tensor
+    own: EventBatch
+    weights: Tensor
+
+
+class Discovery:
+    """Level two's discovery step (module docstring): propose models for the candidate regions of the
+    windows whose descent has settled.
+
+    Args:
+        model: the motion model.
+        sensor_size: ``(H, W)``.
+        config: level two's settings (``discovery_*``, the refits' objective, blur and collapse guard).
+        fit: the proposals' contrast maximisation (``discovery_max_iter`` iterations).
+    """
+
+    def __init__(
+        self,
+        model: MotionModel,
+        sensor_size: tuple[int, int],
+        config: LevelTwoConfig,
+        fit: ContrastMaximization,
+    ) -> None:
+        self.model, self.sensor_size, self.config, self.fit = model, sensor_size, config, fit
+
+    def propose(self, events: EventBatch, states: list[WindowState]) -> None:
+        """Propose models for the windows' candidate regions; a window with proposals labels again.
+
+        The regions and the fits' starts are found per window (NumPy and a few small tensor operations);
+        the fits, most of discovery's time, run for all windows at once.
+        """
+        own = [
+            state.event_cost.gather(
+                1, torch.as_tensor(state.keep[state.labels], device=events.xy.device)[:, None]
+            )
+            for state in states
+        ]
+        # Discovery groups events on the CPU: the one copy back, for all windows.
+        own = nn.utils.rnn.pad_sequence(own, batch_first=True)[..., 0].cpu().numpy()
+        candidates = []
+        for row, state in enumerate(states):
+            regions = candidate_regions(
+                state.xy,
+                state.labels,
+                own[row, : len(state.events)],
+                self.sensor_size,
+                min_events=self.config.discovery_min_events,
+                residual_cost=self.config.discovery_residual_cost,
+                radius=self.config.discovery_radius,
+            )
+            regions = regions[: self.config.discovery_max_proposals]
+            candidates.append(self._proposal_starts(state, regions))
+            state.regions = [members for _, members in regions]
+        counts = [len(candidate.start) for candidate in candidates]
+        fitted = [candidate.start for candidate in candidates]
+        if any(counts):
+            # One pool of proposals per window, padded to the most regions; padding has no events.
+            start = events.xy.new_zeros(len(states), max(counts), self.model.n_params)
+            members = events.xy.new_zeros(len(states), max(counts), events.t.shape[1])
+            for row, candidate in enumerate(candidates):
+                start[row, : counts[row]] = candidate.start
+                members[row, : counts[row], : candidate.members.shape[1]] = candidate.members
+            fitted = self.fit(events, start, members)
+        for row, (state, candidate) in enumerate(zip(states, candidates, strict=True)):
+            accepted = self._accepted(candidate, fitted[row][: counts[row]])
+            proposed = fitted[row][: counts[row]][accepted]
+            state.regions = [
+                region for region, keep in zip(state.regions, accepted.tolist(), strict=True) if keep
+            ]
+            if len(proposed):
+                # The proposals are fitted already: the next labelling decides which are used.
+                state.proposed_from = state.params.shape[0]
+                state.params = torch.cat([state.params, proposed])
+                state.rounds_left = max(state.rounds_left, 1) + 1
+                state.step = "label"
+            else:
+                state.step = "stop"
+
+    def _proposal_starts(self, state: WindowState, regions: list[tuple[int, np.ndarray]]) -> _Candidates:
+        """The regions of one window (:func:`~evseg_torch.level_two.discovery.candidate_regions`) and the
+        start of each one's fit."""
+        params, device = state.params, state.params.device
+        members = params.new_zeros(len(regions), len(state.events))
+        if not regions:
+            empty = params.new_zeros(0, params.shape[1])
+            return _Candidates(members, empty, empty, *gather_members(state.events, members))
+        sizes = [len(region) for _, region in regions]
+        rows = torch.as_tensor(np.repeat(np.arange(len(regions)), sizes), device=device)
+        members[rows, torch.as_tensor(np.concatenate([region for _, region in regions]), device=device)] = 1.0
+        members = subsample(members, _PROPOSAL_MAX_EVENTS)
+        origin = params[torch.as_tensor([cluster for cluster, _ in regions], device=device)]
+        own, weights = gather_members(state.events, members)
+        velocity = centroid_velocity(own, weights)
+        translation = translation_params(self.model, own.xy, weights, velocity)
+        starts = torch.stack([recentred(self.model, own.xy, weights, origin, velocity), translation])
+        with torch.no_grad():
+            # Of the two starts, the fit continues from the sharper one: an optimiser's iterations on
+            # the other would mostly be spent where the first already is.
+            sharper = self._region_loss(own, starts.flatten(0, 1), weights).view(2, -1).argmin(dim=0)
+        start = starts[sharper, torch.arange(len(regions), device=device)]
+        return _Candidates(members, start, origin, own, weights)
+
+    def _accepted(self, candidate: _Candidates, fitted: Tensor) -> Tensor:
+        """Which fitted proposals :math:`(R, P)` of one window sharpen their regions without collapse,
+        bool :math:`(R,)`."""
+        if not len(fitted):
+            return torch.zeros(0, dtype=torch.bool, device=fitted.device)
+        with torch.no_grad():
+            losses = self._region_loss(
+                candidate.own, torch.cat([candidate.origin, fitted]), candidate.weights
+            )
+            losses = losses.view(2, -1)
+            # A proposal that compensates its region less sharply than the region's own model is none.
+            keep = losses[1] <= (1.0 + self.config.discovery_min_gain) * losses[0]
+            # Event collapse (reference §5): a fit that shrinks or swells its region's area by more than
+            # _MAX_AREA_CHANGE on average has piled events up, not found a motion.
+            weights = candidate.weights
+            area = (warp_area_element(self.model, candidate.own, fitted) * weights).sum(dim=1) / weights.sum(
+                dim=1
+            )
+            keep &= (area - 1.0).abs() <= _MAX_AREA_CHANGE
+        return keep
+
+    def _region_loss(self, events: EventBatch, params: Tensor, weights: Tensor) -> Tensor:
+        """Contrast loss of ``params`` (two rows per region) on the gathered regions' events."""
+        return contrast_loss(
+            self.model,
+            EventBatch(events.xy.repeat(2, 1, 1), events.t.repeat(2, 1), events.p.repeat(2, 1)),
+            params,
+            weights.repeat(2, 1),
+            sensor_size=self.sensor_size,
+            objective=self.config.objective,
+            sigma=self.config.sigma,
+            collapse_weight=self.config.collapse_weight,
+        )

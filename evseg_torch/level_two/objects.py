@@ -38,8 +38,22 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import torch
 
-__all__ = ["cluster_groups", "object_groups", "spans_view", "split_objects", "support_cost", "support_mask"]
+from evseg_torch.config import LevelTwoConfig
+from evseg_torch.level_two.iwe import warp_events
+from evseg_torch.level_two.window_state import WindowState, site_majority
+from evseg_torch.motion import MotionModel
+
+__all__ = [
+    "ObjectPhase",
+    "cluster_groups",
+    "object_groups",
+    "spans_view",
+    "split_objects",
+    "support_cost",
+    "support_mask",
+]
 
 # Fewest events of the rarer polarity, as a fraction of a group's events, for the group to be an object
 # on its own rather than one edge strip of a textureless object.
@@ -279,3 +293,89 @@ def _root(parent: np.ndarray, index: int) -> int:
 
 def _join(parent: np.ndarray, first: int, second: int) -> None:
     parent[_root(parent, first)] = _root(parent, second)
+
+
+class ObjectPhase:
+    """Level two's object phase (module docstring), stepping a window once its descent has settled.
+
+    Args:
+        model: the motion model.
+        sensor_size: ``(H, W)``.
+        config: level two's settings (``objects``, ``object_*``, ``lambda_data``).
+    """
+
+    def __init__(self, model: MotionModel, sensor_size: tuple[int, int], config: LevelTwoConfig) -> None:
+        self.model, self.sensor_size, self.config = model, sensor_size, config
+
+    def next_step(self, state: WindowState) -> str:
+        """What follows a settled labelling once discovery is done: the object phase
+        (:mod:`~evseg_torch.level_two.objects`). Its first step labels again with the support term, when
+        some event lies outside its own cluster's support; later ones split clusters of separate objects
+        and refit the parts, ``object_splits`` times at most; then the window stops."""
+        if not self.config.objects:
+            return "stop"
+        if not state.objects_on:
+            state.objects_on = True
+            support = self.support_cost(state)
+            if np.any(support[np.arange(state.n_sites), state.node_labels] > 0):
+                # No model moved since this labelling: its data costs stand, for the surviving models.
+                state.event_cost = state.event_cost[
+                    :, torch.as_tensor(state.keep, device=state.params.device)
+                ]
+                state.node_cost = state.node_cost[:, state.keep] + support
+                state.costs_ready = True
+                state.rounds_left = max(state.rounds_left, 1)
+                return "label"
+        if state.splits_left > 0 and self.split(state):
+            state.splits_left -= 1
+            state.rounds_left = max(state.rounds_left, 1)
+            return "refit"
+        return "stop"
+
+    def compensated(self, state: WindowState) -> np.ndarray:
+        """Every event of the window compensated by every model of its pool, :math:`(K, N, 2)`, on the CPU."""
+        with torch.no_grad():
+            return warp_events(self.model, state.events.xy, state.events.t, state.params).cpu().numpy()
+
+    def groups(self, state: WindowState, warped: np.ndarray) -> dict[int, tuple[np.ndarray, int]]:
+        """:func:`~evseg_torch.level_two.objects.cluster_groups` of the window's labelled clusters."""
+        return cluster_groups(
+            warped[: state.params.shape[0] - len(state.regions)],
+            state.labels,
+            state.polarity,
+            state.xy,
+            self.sensor_size,
+            radius=self.config.object_radius,
+            min_events=self.config.discovery_min_events,
+        )
+
+    def support_cost(self, state: WindowState) -> np.ndarray:
+        """The support term of every site under every model of the window, :math:`(S, K)`
+        (:func:`~evseg_torch.level_two.objects.support_cost`; a proposal's support is its region)."""
+        warped = self.compensated(state)
+        per_event = support_cost(
+            warped,
+            self.groups(state, warped),
+            state.labels,
+            state.regions,
+            self.sensor_size,
+            cost=self.config.lambda_data * self.config.object_support_cost,
+            radius=self.config.object_support_radius,
+        )
+        site_cost = np.zeros((state.n_sites, per_event.shape[1]))
+        for model in np.flatnonzero(per_event.any(axis=0)):
+            site_cost[:, model] = np.bincount(
+                state.sites, weights=per_event[:, model], minlength=state.n_sites
+            )
+        return site_cost
+
+    def split(self, state: WindowState) -> bool:
+        """Split the window's clusters of separate objects, each part keeping its parent's model until its
+        refit (:func:`~evseg_torch.level_two.objects.split_objects`); whether any cluster was split."""
+        labels, parent = split_objects(state.labels, self.groups(state, self.compensated(state)))
+        if len(parent) == state.params.shape[0]:
+            return False
+        state.labels = labels
+        state.node_labels = site_majority(labels, state.sites, state.n_sites)
+        state.params = state.params[torch.as_tensor(parent, device=state.params.device)]
+        return True

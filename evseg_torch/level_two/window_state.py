@@ -1,0 +1,140 @@
+"""One window's state in level two's block-coordinate descent, and the helpers that batch windows.
+
+:class:`WindowState` is what the segmenter (:mod:`~evseg_torch.level_two.segmenter`), discovery
+(:mod:`~evseg_torch.level_two.discovery`) and the object phase (:mod:`~evseg_torch.level_two.objects`)
+step, round by round; the functions below renumber labels, build memberships and pad the windows of a
+batch into shared tensors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from evseg_torch.events import EventBatch
+from evseg_torch.graphcut.alpha_expansion import PottsGraph
+
+
+@dataclass
+class WindowState:
+    """One window's block-coordinate descent as the segmenter steps it, round by round.
+
+    ``sites`` maps each event to its graph-cut node (the event itself without sites), ``xy`` holds its
+    integer pixels on the CPU (for discovery), ``event_cost`` the last data costs :math:`(N, K)` and
+    ``node_cost`` their sums per node for the graph cut (``costs_ready`` when they are set for the next
+    labelling already); ``step`` is what follows the last labelling: ``"refit"``, ``"propose"``
+    (discovery), ``"label"`` (again, with proposals or the object phase's support) or ``"stop"``.
+    ``objects_on`` once the object phase has begun, ``splits_left`` its splits still allowed, ``regions``
+    the events of each proposal (its first support).
+    """
+
+    index: int
+    events: EventBatch
+    xy: np.ndarray
+    polarity: np.ndarray
+    graph: PottsGraph
+    sites: np.ndarray
+    n_sites: int
+    params: Tensor
+    labels: np.ndarray | None
+    node_labels: np.ndarray | None
+    rounds_left: int
+    discoveries_left: int
+    splits_left: int
+    history: list[float] = field(default_factory=list)
+    regions: list[np.ndarray] = field(default_factory=list)
+    objects_on: bool = False
+    costs_ready: bool = False
+    proposed_from: int | None = None
+    event_cost: Tensor | None = None
+    node_cost: np.ndarray | None = None
+    keep: np.ndarray | None = None
+    step: str = "label"
+
+
+def renumber_by_size(labels: np.ndarray, n_labels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Renumbering that drops empty labels and orders the rest by decreasing size (ties by index).
+
+    Returns the new index of every old label (-1 if dropped) and, for each new label, its old index.
+    """
+    counts = np.bincount(labels, minlength=n_labels)
+    order = np.argsort(-counts, kind="stable")
+    keep = order[counts[order] > 0]
+    mapping = np.full(n_labels, -1, dtype=np.int64)
+    mapping[keep] = np.arange(keep.shape[0])
+    return mapping, keep
+
+
+def site_majority(labels: np.ndarray, sites: np.ndarray, n_sites: int) -> np.ndarray:
+    """The most frequent label of each site's events (ties to the lower label)."""
+    n_labels = int(labels.max()) + 1
+    votes = np.bincount(sites * n_labels + labels, minlength=n_sites * n_labels)
+    return votes.reshape(n_sites, n_labels).argmax(axis=1)
+
+
+def changed_fraction(old: np.ndarray, new: np.ndarray, keep: np.ndarray) -> float:
+    """Fraction of events whose model changed; ``new`` numbers the surviving models ``keep`` of ``old``'s."""
+    return float(np.mean(keep[new] != old))
+
+
+def memberships(labels: Tensor, n_clusters: int, dtype: torch.dtype) -> Tensor:
+    """One-hot memberships :math:`(..., K, N)` of labels :math:`(..., N)`; label -1 (padding) is in none."""
+    return (labels[..., None, :] == torch.arange(n_clusters, device=labels.device)[:, None]).to(dtype)
+
+
+def subsample(weights: Tensor, max_events: int) -> Tensor:
+    """Keep every s-th member of each cluster (in event order), s chosen so that at most ``max_events`` stay.
+
+    Args:
+        weights: one-hot memberships :math:`(..., K, N)`.
+    """
+    counts = weights.sum(dim=-1, keepdim=True)
+    stride = torch.ceil(counts / max_events).clamp_min(1)
+    rank = torch.cumsum(weights, dim=-1) - 1
+    return weights * (torch.remainder(rank, stride) == 0)
+
+
+def chunks(sizes: Sequence[int], budget: int | None) -> list[list[int]]:
+    """Consecutive indices of ``sizes`` in chunks whose sizes add up to at most ``budget`` (each chunk
+    holds one at least); one chunk of all for ``budget`` ``None``."""
+    chunks, total = [[]], 0
+    for index, size in enumerate(sizes):
+        total += size
+        if chunks[-1] and budget is not None and total > budget:
+            chunks.append([])
+            total = size
+        chunks[-1].append(index)
+    return chunks
+
+
+def select_windows(batch: EventBatch, states: Sequence[WindowState]) -> EventBatch:
+    """The windows of ``states`` from the padded batch (itself when it holds just them), padded to the
+    longest of them."""
+    rows = [state.index for state in states]
+    if rows == list(range(len(batch))):
+        return batch
+    index = torch.as_tensor(rows, device=batch.xy.device)
+    longest = max(len(state.events) for state in states)
+    xy, t, p, lengths = (field[index] for field in batch)
+    return EventBatch(xy[:, :longest], t[:, :longest], p[:, :longest], lengths)
+
+
+def padded_rows(rows: Sequence[np.ndarray], length: int, device: torch.device) -> Tensor:
+    """Integer rows :math:`(n_b,)` as one int64 tensor :math:`(B, L)`, ``L = length``, padded with -1,
+    moved to ``device`` in one copy."""
+    padded = np.full((len(rows), length), -1, dtype=np.int64)
+    for index, row in enumerate(rows):
+        padded[index, : len(row)] = row
+    return torch.as_tensor(padded, device=device)
+
+
+def padded_pools(pools: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+    """Pools :math:`(K_b, P)` as one tensor :math:`(B, K, P)` padded with zeros, and which models are
+    real, bool :math:`(B, K)`."""
+    params = nn.utils.rnn.pad_sequence(list(pools), batch_first=True)
+    counts = torch.tensor([len(pool) for pool in pools], device=params.device)
+    return params, torch.arange(params.shape[1], device=params.device) < counts[:, None]
