@@ -523,6 +523,14 @@ def batch_windows(windows: Sequence[EventBatch]) -> EventBatch:
     return EventBatch(xy, t, p, lengths)
 
 
+def batch_of_one(events: EventBatch) -> EventBatch:
+    """One window as a padded batch of one window (views of its tensors, ``lengths`` its event count)."""
+    import torch
+
+    lengths = torch.tensor([events.t.shape[-1]], device=events.t.device)
+    return EventBatch(events.xy[None], events.t[None], events.p[None], lengths)
+
+
 def to_torch(
     events: np.ndarray,
     t_ref_us: int | None = None,

@@ -15,16 +15,16 @@ import torch
 from torch import Tensor, nn
 
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
-from evseg_torch.events import EventBatch
+from evseg_torch.events import EventBatch, batch_of_one
+from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
 from evseg_torch.level_two.contrast import (
     DEFAULT_COLLAPSE_WEIGHT,
     REFERENCE_OBJECTIVES,
-    check_padded_batch,
     objective_function,
     warped_contrast_loss,
 )
 from evseg_torch.level_two.crops import fit_crops, gather_members
-from evseg_torch.level_two.iwe import _batch_of_one, _check_sensor_size, splat_events
+from evseg_torch.level_two.iwe import splat_events
 from evseg_torch.level_two.linear_warp import LinearWarp
 from evseg_torch.level_two.solver import adam, lbfgs
 from evseg_torch.motion import MotionModel
@@ -113,7 +113,7 @@ class ContrastMaximization(nn.Module):
         if not collapse_weight >= 0:
             raise ConfigError(f"collapse_weight must be >= 0, got {collapse_weight}")
         self.model = model
-        self.sensor_size = _check_sensor_size(sensor_size or model.sensor_size)
+        self.sensor_size = check_sensor_size(sensor_size or model.sensor_size)
         self.objective = objective
         self.optimizer = optimizer
         self.max_iter = int(max_iter)
@@ -156,7 +156,7 @@ class ContrastMaximization(nn.Module):
                 f"weights must be (K, N) = {(init_params.shape[0], n_events)}, got {tuple(weights.shape)}"
             )
         weights = None if weights is None else weights[None]
-        return self._fit_windows(_batch_of_one(events), init_params.detach()[None], weights)[0]
+        return self._fit_windows(batch_of_one(events), init_params.detach()[None], weights)[0]
 
     def _fit_windows(self, events: EventBatch, init: Tensor, weights: Tensor | None) -> Tensor:
         """Fit the clusters of a padded batch: ``init`` :math:`(B, K, P)`, ``weights`` :math:`(B, K, N)`."""

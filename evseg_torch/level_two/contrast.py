@@ -36,7 +36,8 @@ from torch import Tensor, nn
 from evseg_torch.config import LevelTwoConfig
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.iwe import _check_sensor_size, extent_mask, splat_events
+from evseg_torch.level_two.checks import check_image, check_padded_batch, check_sensor_size
+from evseg_torch.level_two.iwe import extent_mask, splat_events
 from evseg_torch.level_two.iwe_variance import iwe_variance
 from evseg_torch.level_two.linear_warp import LinearWarp, sum_ignoring_padding
 from evseg_torch.motion import MotionModel
@@ -68,7 +69,7 @@ def image_variance(iwe: Tensor, reference: Tensor | None = None, mask: Tensor | 
         >>> image_variance(image, mask=torch.tensor([[True, True, False]]))
         tensor(1.)
     """
-    _check_image(iwe, "iwe")
+    check_image(iwe, "iwe")
     if mask is None:
         flat = iwe.flatten(-2)
         # Written out: torch.var's forward and backward take twice as long on CPU.
@@ -97,7 +98,7 @@ def normalized_variance(iwe: Tensor, reference: Tensor, mask: Tensor | None = No
         >>> normalized_variance(torch.rand(3, 8, 8), torch.rand(8, 8)).shape
         torch.Size([3])
     """
-    _check_image(reference, "reference")
+    check_image(reference, "reference")
     return image_variance(iwe, mask=mask) / image_variance(reference, mask=mask)
 
 
@@ -301,20 +302,6 @@ def padded_contrast_loss(
     )
 
 
-def check_padded_batch(events: EventBatch) -> None:
-    if not isinstance(events, EventBatch) or not events.is_batched:
-        raise ShapeError("events must be a padded batch of windows (EventBatch with lengths)")
-    if (
-        events.t.ndim != 2
-        or events.xy.shape != (*events.t.shape, 2)
-        or events.lengths.shape != (events.t.shape[0],)
-    ):
-        raise ShapeError(
-            "a padded batch must hold xy (B, N_max, 2), t (B, N_max) and lengths (B,), got "
-            f"{tuple(events.xy.shape)}, {tuple(events.t.shape)} and {tuple(events.lengths.shape)}"
-        )
-
-
 class ContrastLoss(nn.Module):
     r"""Module form of :func:`contrast_loss`, to train a network through contrast maximisation.
 
@@ -367,7 +354,7 @@ class ContrastLoss(nn.Module):
         if reduction not in ("none", "mean", "sum"):
             raise ConfigError(f"reduction must be 'none', 'mean' or 'sum', got {reduction!r}")
         self.model = model
-        self.sensor_size = _check_sensor_size(sensor_size or model.sensor_size)
+        self.sensor_size = check_sensor_size(sensor_size or model.sensor_size)
         self.objective = objective
         self.sigma = float(sigma)
         self.collapse_weight = float(collapse_weight)
@@ -444,10 +431,3 @@ def objective_function(name: str) -> Callable[..., Tensor]:
         raise ConfigError(
             f"unknown contrast objective {name!r}; choose one of {sorted(CONTRAST_OBJECTIVES)}"
         ) from None
-
-
-def _check_image(image: Tensor, name: str) -> None:
-    if not isinstance(image, Tensor):
-        raise ShapeError(f"{name} must be a torch.Tensor, got {type(image).__name__}")
-    if image.ndim < 2:
-        raise ShapeError(f"{name} must have shape (..., H, W), got {tuple(image.shape)}")

@@ -65,8 +65,8 @@ import torch
 from torch import Tensor, nn
 
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
-from evseg_torch.events import EventBatch
-from evseg_torch.level_two.iwe import _batch_of_one, extent_mask, splat_events, warp_events
+from evseg_torch.events import EventBatch, batch_of_one
+from evseg_torch.level_two.iwe import extent_mask, splat_events, warp_events
 from evseg_torch.motion import MotionModel
 
 __all__ = ["DataCost", "data_cost", "sample_bilinear"]
@@ -232,7 +232,7 @@ def data_cost(
         raise ConfigError(f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}")
     _check_margin(margin)
     if not batched:
-        events, params = _batch_of_one(events), params[None]
+        events, params = batch_of_one(events), params[None]
     n_windows, n_models = params.shape[:2]
     height, width = sensor_size or model.sensor_size
     real = events.mask[:, None]  # (B, 1, N)

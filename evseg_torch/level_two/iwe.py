@@ -34,8 +34,9 @@ import math
 import torch
 from torch import Tensor, nn
 
-from evseg_torch.errors import ConfigError, ShapeError
+from evseg_torch.errors import ShapeError
 from evseg_torch.events import EventBatch
+from evseg_torch.level_two.checks import check_blur, check_points, check_sensor_size
 from evseg_torch.motion import MotionModel
 
 
@@ -62,7 +63,7 @@ def warp_events(model: MotionModel, xy: Tensor, t: Tensor, params: Tensor) -> Te
         >>> warp_events(Translation((8, 8)), torch.rand(20, 2), torch.rand(20), torch.rand(3, 2)).shape
         torch.Size([3, 20, 2])
     """
-    _check_points(xy, "xy")
+    check_points(xy, "xy")
     if t.shape != xy.shape[:-1]:
         raise ShapeError(f"t must have shape {tuple(xy.shape[:-1])} to match xy, got {tuple(t.shape)}")
     if params.ndim == 0 or params.shape[-1] != model.n_params:
@@ -121,8 +122,8 @@ def splat_events(
         >>> splat_events(torch.rand(4, 100, 2) * 7, (8, 8), polarity=torch.randn(100).sign()).shape
         torch.Size([4, 2, 8, 8])
     """
-    height, width = _check_sensor_size(sensor_size)
-    _check_points(xy, "xy")
+    height, width = check_sensor_size(sensor_size)
+    check_points(xy, "xy")
     if not xy.is_floating_point():
         raise ShapeError(f"xy must be a floating-point tensor, got {xy.dtype}")
     if polarity is not None:
@@ -148,11 +149,11 @@ def splat_events(
             raise ShapeError(
                 f"weights {tuple(weights.shape)} do not broadcast against xy {tuple(xy.shape)}"
             ) from None
-    _check_blur(sigma, truncate)
+    check_blur(sigma, truncate)
 
     shape = (*batch_shape, xy.shape[-2])
     n_images, padded_size = math.prod(batch_shape), (height + 4) * (width + 4)
-    corner, taps = _bilinear_taps(xy, weights, height, width)
+    corner, taps = bilinear_taps(xy, weights, height, width)
     offsets = torch.arange(n_images, device=xy.device).view(*batch_shape, 1) * padded_size
     corner = (corner.expand(shape) + offsets).reshape(-1)
     # One scatter per tap: stacking the four taps into one index costs more than the scatters.
@@ -204,7 +205,7 @@ def gaussian_blur(image: Tensor, sigma: float, truncate: float = 3.0) -> Tensor:
         >>> gaussian_blur(torch.rand(2, 8, 8), 1.0).shape
         torch.Size([2, 8, 8])
     """
-    _check_blur(sigma, truncate)
+    check_blur(sigma, truncate)
     if sigma == 0:
         return image
     radius = math.ceil(truncate * sigma)
@@ -294,8 +295,8 @@ class ImageOfWarpedEvents(nn.Module):
 
     def __init__(self, sensor_size: tuple[int, int], sigma: float = 1.0, truncate: float = 3.0) -> None:
         super().__init__()
-        self.sensor_size = _check_sensor_size(sensor_size)
-        _check_blur(sigma, truncate)
+        self.sensor_size = check_sensor_size(sensor_size)
+        check_blur(sigma, truncate)
         self.sigma = float(sigma)
         self.truncate = float(truncate)
 
@@ -306,7 +307,7 @@ class ImageOfWarpedEvents(nn.Module):
         return f"sensor_size={self.sensor_size}, sigma={self.sigma}, truncate={self.truncate}"
 
 
-def _bilinear_taps(
+def bilinear_taps(
     xy: Tensor, weights: Tensor | None, height: int, width: int
 ) -> tuple[Tensor, list[tuple[int, Tensor]]]:
     """Index of the top-left tap of each position, :math:`(..., N)`, into an image padded by 2 pixels on
@@ -324,33 +325,3 @@ def _bilinear_taps(
     stride = width + 4
     taps = [(0, top * left), (1, top * fx), (stride, bottom * left), (stride + 1, bottom * fx)]
     return row * stride + col, taps
-
-
-def _batch_of_one(events: EventBatch) -> EventBatch:
-    """One window as a padded batch of one window (views of its tensors, ``lengths`` its event count)."""
-    lengths = torch.tensor([events.t.shape[-1]], device=events.t.device)
-    return EventBatch(events.xy[None], events.t[None], events.p[None], lengths)
-
-
-def _check_points(xy: Tensor, name: str) -> None:
-    if not isinstance(xy, Tensor):
-        raise ShapeError(f"{name} must be a torch.Tensor, got {type(xy).__name__}")
-    if xy.ndim < 2 or xy.shape[-1] != 2:
-        raise ShapeError(f"{name} must have shape (..., N, 2), got {tuple(xy.shape)}")
-
-
-def _check_sensor_size(sensor_size) -> tuple[int, int]:
-    try:
-        height, width = (int(v) for v in sensor_size)
-    except (TypeError, ValueError):
-        raise ShapeError(f"sensor_size must be (H, W), got {sensor_size!r}") from None
-    if height <= 0 or width <= 0:
-        raise ShapeError(f"sensor_size (H, W) must be positive, got {sensor_size!r}")
-    return height, width
-
-
-def _check_blur(sigma: float, truncate: float) -> None:
-    if not (math.isfinite(sigma) and sigma >= 0):
-        raise ConfigError(f"sigma must be a finite number >= 0, got {sigma}")
-    if not (math.isfinite(truncate) and truncate > 0):
-        raise ConfigError(f"truncate must be a finite number > 0, got {truncate}")

@@ -18,7 +18,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from evseg_torch.errors import ShapeError
-from evseg_torch.level_two.iwe import _bilinear_taps, extent_mask, gaussian_blur
+from evseg_torch.level_two.iwe import bilinear_taps, extent_mask, gaussian_blur
 from evseg_torch.level_two.linear_warp import sum_ignoring_padding
 
 
@@ -53,7 +53,7 @@ class _IWEVariance(torch.autograd.Function):
         height, width = size
         n_rows = xy.shape[0]
         padded = (height + 4) * (width + 4)
-        corner, taps = _bilinear_taps(xy, weights, height, width)
+        corner, taps = bilinear_taps(xy, weights, height, width)
         index = corner + torch.arange(n_rows, device=xy.device)[:, None] * padded
         image = xy.new_zeros(n_rows * padded)
         for step, tap in taps:

@@ -16,7 +16,7 @@ from torch import Tensor
 
 from evseg_torch.errors import ShapeError
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.iwe import _check_points
+from evseg_torch.level_two.checks import check_points
 from evseg_torch.motion import MotionModel
 
 # Values per block of sum_ignoring_padding: long enough for torch's fast sums, short enough that the
@@ -39,7 +39,7 @@ class LinearWarp(NamedTuple):
 
     @classmethod
     def build(cls, model: MotionModel, events: EventBatch, with_area: bool = True) -> LinearWarp:
-        _check_points(events.xy, "events.xy")
+        check_points(events.xy, "events.xy")
         if events.t.shape != events.xy.shape[:-1]:
             raise ShapeError(
                 f"events.t must have shape {tuple(events.xy.shape[:-1])} to match events.xy, "

@@ -36,13 +36,8 @@ from torch import Tensor, nn
 
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.contrast import (
-    DEFAULT_COLLAPSE_WEIGHT,
-    check_padded_batch,
-    objective_function,
-    padded_contrast_loss,
-)
-from evseg_torch.level_two.iwe import _check_sensor_size
+from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
+from evseg_torch.level_two.contrast import DEFAULT_COLLAPSE_WEIGHT, objective_function, padded_contrast_loss
 from evseg_torch.motion import MotionModel
 
 __all__ = ["ASSIGNMENT_TOLERANCE", "MultiModelContrastLoss", "multi_model_contrast_loss"]
@@ -183,7 +178,7 @@ class MultiModelContrastLoss(nn.Module):
         super().__init__()
         _check_options(objective, collapse_weight, balance_weight, reduction)
         self.model = model
-        self.sensor_size = _check_sensor_size(sensor_size or model.sensor_size)
+        self.sensor_size = check_sensor_size(sensor_size or model.sensor_size)
         self.objective = objective
         self.sigma = float(sigma)
         self.collapse_weight = float(collapse_weight)

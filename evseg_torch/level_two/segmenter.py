@@ -41,14 +41,15 @@ from torch import Tensor, nn
 
 from evseg_torch.config import LevelTwoConfig, replace_settings
 from evseg_torch.errors import EventFormatError, ModelError, ShapeError
-from evseg_torch.events import EventBatch, batch_windows
+from evseg_torch.events import EventBatch, batch_of_one, batch_windows
 from evseg_torch.graphcut.alpha_expansion import alpha_expansion, potts_graph
+from evseg_torch.level_two.checks import check_events
 from evseg_torch.level_two.cmax import ContrastMaximization
 from evseg_torch.level_two.contrast import contrast_loss
 from evseg_torch.level_two.data_term import DataCost
 from evseg_torch.level_two.discovery import Discovery
 from evseg_torch.level_two.graph import event_graph, site_graph
-from evseg_torch.level_two.iwe import _batch_of_one, splat_events, warp_events
+from evseg_torch.level_two.iwe import splat_events, warp_events
 from evseg_torch.level_two.objects import ObjectPhase
 from evseg_torch.level_two.window_state import (
     WindowState,
@@ -111,22 +112,6 @@ class LevelTwoResult:
     soft_assignments: Tensor
     energy_history: tuple[float, ...]
     timings_ms: dict[str, float] = field(default_factory=dict, compare=False)
-
-
-def _check_events(events) -> EventBatch:
-    if not isinstance(events, EventBatch):
-        raise EventFormatError(
-            f"level two expects an EventBatch (see events.to_torch), got {type(events).__name__}"
-        )
-    count = len(events)
-    if count == 0:
-        raise EventFormatError("level two got a window with 0 events")
-    if events.xy.shape != (count, 2) or events.p.shape != (count,):
-        raise ShapeError(
-            f"EventBatch fields must be xy (N, 2), t (N,), p (N,); got {tuple(events.xy.shape)}, "
-            f"{tuple(events.t.shape)}, {tuple(events.p.shape)}"
-        )
-    return events
 
 
 _STAGES = ("graph", "data_term", "labelling", "refit", "discovery", "images")
@@ -262,11 +247,11 @@ class GraphCutContrastSegmenter(nn.Module):
             ModelError: if ``init_params`` hold NaN or inf.
         """
         if isinstance(events, EventBatch) and not events.is_batched:
-            return self._segment(
-                _batch_of_one(_check_events(events)), [events], [init_params], [init_labels]
-            )[0]
+            return self._segment(batch_of_one(check_events(events)), [events], [init_params], [init_labels])[
+                0
+            ]
         if isinstance(events, EventBatch):
-            windows = [_check_events(window) for window in events.unbatch()]
+            windows = [check_events(window) for window in events.unbatch()]
             batch = events
             if isinstance(init_labels, (Tensor, np.ndarray)) and init_labels.ndim == 2:
                 if tuple(init_labels.shape) != tuple(events.t.shape):
@@ -276,7 +261,7 @@ class GraphCutContrastSegmenter(nn.Module):
                     )
                 init_labels = [row[: len(window)] for row, window in zip(init_labels, windows, strict=True)]
         elif isinstance(events, Sequence) and not isinstance(events, str):
-            windows = [_check_events(window) for window in events]
+            windows = [check_events(window) for window in events]
             batch = batch_windows(windows) if windows else None
         else:
             raise EventFormatError(
@@ -310,7 +295,7 @@ class GraphCutContrastSegmenter(nn.Module):
         Returns:
             :math:`(K,)`, lower is sharper.
         """
-        events = _check_events(events)
+        events = check_events(events)
         weights = (
             None
             if labels is None

@@ -1,0 +1,72 @@
+"""Level two's checks of its inputs, shared by its modules: each raises one of our errors naming the
+problem (:mod:`evseg_torch.errors`)."""
+
+from __future__ import annotations
+
+import math
+
+from torch import Tensor
+
+from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
+from evseg_torch.events import EventBatch
+
+
+def check_points(xy: Tensor, name: str) -> None:
+    if not isinstance(xy, Tensor):
+        raise ShapeError(f"{name} must be a torch.Tensor, got {type(xy).__name__}")
+    if xy.ndim < 2 or xy.shape[-1] != 2:
+        raise ShapeError(f"{name} must have shape (..., N, 2), got {tuple(xy.shape)}")
+
+
+def check_sensor_size(sensor_size) -> tuple[int, int]:
+    try:
+        height, width = (int(v) for v in sensor_size)
+    except (TypeError, ValueError):
+        raise ShapeError(f"sensor_size must be (H, W), got {sensor_size!r}") from None
+    if height <= 0 or width <= 0:
+        raise ShapeError(f"sensor_size (H, W) must be positive, got {sensor_size!r}")
+    return height, width
+
+
+def check_blur(sigma: float, truncate: float) -> None:
+    if not (math.isfinite(sigma) and sigma >= 0):
+        raise ConfigError(f"sigma must be a finite number >= 0, got {sigma}")
+    if not (math.isfinite(truncate) and truncate > 0):
+        raise ConfigError(f"truncate must be a finite number > 0, got {truncate}")
+
+
+def check_padded_batch(events: EventBatch) -> None:
+    if not isinstance(events, EventBatch) or not events.is_batched:
+        raise ShapeError("events must be a padded batch of windows (EventBatch with lengths)")
+    if (
+        events.t.ndim != 2
+        or events.xy.shape != (*events.t.shape, 2)
+        or events.lengths.shape != (events.t.shape[0],)
+    ):
+        raise ShapeError(
+            "a padded batch must hold xy (B, N_max, 2), t (B, N_max) and lengths (B,), got "
+            f"{tuple(events.xy.shape)}, {tuple(events.t.shape)} and {tuple(events.lengths.shape)}"
+        )
+
+
+def check_image(image: Tensor, name: str) -> None:
+    if not isinstance(image, Tensor):
+        raise ShapeError(f"{name} must be a torch.Tensor, got {type(image).__name__}")
+    if image.ndim < 2:
+        raise ShapeError(f"{name} must have shape (..., H, W), got {tuple(image.shape)}")
+
+
+def check_events(events) -> EventBatch:
+    if not isinstance(events, EventBatch):
+        raise EventFormatError(
+            f"level two expects an EventBatch (see events.to_torch), got {type(events).__name__}"
+        )
+    count = len(events)
+    if count == 0:
+        raise EventFormatError("level two got a window with 0 events")
+    if events.xy.shape != (count, 2) or events.p.shape != (count,):
+        raise ShapeError(
+            f"EventBatch fields must be xy (N, 2), t (N,), p (N,); got {tuple(events.xy.shape)}, "
+            f"{tuple(events.t.shape)}, {tuple(events.p.shape)}"
+        )
+    return events
