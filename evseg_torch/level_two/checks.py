@@ -12,6 +12,7 @@ from evseg_torch.events import EventBatch
 
 
 def check_points(xy: Tensor, name: str) -> None:
+    """``xy`` is a tensor of positions :math:`(..., N, 2)`; ``name`` names it in the error."""
     if not isinstance(xy, Tensor):
         raise ShapeError(f"{name} must be a torch.Tensor, got {type(xy).__name__}")
     if xy.ndim < 2 or xy.shape[-1] != 2:
@@ -19,6 +20,7 @@ def check_points(xy: Tensor, name: str) -> None:
 
 
 def check_sensor_size(sensor_size) -> tuple[int, int]:
+    """``(H, W)`` as two positive ints (:class:`ShapeError` otherwise)."""
     try:
         height, width = (int(v) for v in sensor_size)
     except (TypeError, ValueError):
@@ -29,6 +31,7 @@ def check_sensor_size(sensor_size) -> tuple[int, int]:
 
 
 def check_blur(sigma: float, truncate: float) -> None:
+    """A Gaussian blur's ``sigma`` (finite, >= 0) and ``truncate`` (finite, > 0)."""
     if not (math.isfinite(sigma) and sigma >= 0):
         raise ConfigError(f"sigma must be a finite number >= 0, got {sigma}")
     if not (math.isfinite(truncate) and truncate > 0):
@@ -36,6 +39,7 @@ def check_blur(sigma: float, truncate: float) -> None:
 
 
 def check_padded_batch(events: EventBatch) -> None:
+    """``events`` is a padded batch of windows (:func:`~evseg_torch.events.batch_windows`)."""
     if not isinstance(events, EventBatch) or not events.is_batched:
         raise ShapeError("events must be a padded batch of windows (EventBatch with lengths)")
     if (
@@ -50,6 +54,7 @@ def check_padded_batch(events: EventBatch) -> None:
 
 
 def check_image(image: Tensor, name: str) -> None:
+    """``image`` is a tensor :math:`(..., H, W)`; ``name`` names it in the error."""
     if not isinstance(image, Tensor):
         raise ShapeError(f"{name} must be a torch.Tensor, got {type(image).__name__}")
     if image.ndim < 2:
@@ -57,6 +62,7 @@ def check_image(image: Tensor, name: str) -> None:
 
 
 def check_events(events) -> EventBatch:
+    """One non-empty window as level two takes it, an :class:`EventBatch` of ``xy`` :math:`(N, 2)`."""
     if not isinstance(events, EventBatch):
         raise EventFormatError(
             f"level two expects an EventBatch (see events.to_torch), got {type(events).__name__}"
