@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from evseg_torch.errors import ShapeError
 from evseg_torch.events import EventBatch
@@ -114,15 +114,15 @@ def sum_ignoring_padding(values: Tensor) -> Tensor:
     """Sum over the last dimension that zeros appended to it do not change, bit for bit.
 
     Fixed blocks of :data:`_SUM_BLOCK` values from the start (the last one completed with zeros) are
-    summed, then the block sums added in order (``cumsum``; in float64 on CPU): appended zeros only add
-    blocks of zeros. On CUDA the sums are alike up to rounding only.
+    summed, then the block sums added in order (``cumsum``): appended zeros only complete the last block
+    or add blocks of zeros, which add exact zeros. On CUDA the sums are alike up to rounding only.
     """
     length = values.shape[-1]
-    full = length // _SUM_BLOCK * _SUM_BLOCK
-    tail = values.new_zeros(*values.shape[:-1], 1, _SUM_BLOCK)
-    tail[..., 0, : length - full] = values[..., full:]
-    blocks = torch.cat([values[..., :full].unflatten(-1, (-1, _SUM_BLOCK)), tail], dim=-2)
-    return blocks.sum(dim=-1).cumsum(dim=-1)[..., -1]
+    if not length:
+        return values.new_zeros(values.shape[:-1])
+    blocks = nn.functional.pad(values, (0, -length % _SUM_BLOCK)).unflatten(-1, (-1, _SUM_BLOCK)).sum(dim=-1)
+    # One block (images up to 256 pixels wide or high): its sum is the total, no cumsum needed.
+    return blocks[..., 0] if blocks.shape[-1] == 1 else blocks.cumsum(dim=-1)[..., -1]
 
 
 def _parameter_first(operator: Tensor) -> Tensor:
