@@ -188,8 +188,7 @@ def test_adam_from_yaml_runs_as_the_module_with_keywords(tmp_path):
     from_yaml = CascadedSegmenter.from_config(tmp_path / "adam.yaml", sensor_size).level_two
     by_keyword = GraphCutContrastSegmenter("translation", sensor_size, optimizer="adam")
     assert from_yaml.config == by_keyword.config
-    for fit in ("refit", "warm_refit", "proposal_fit"):
-        assert getattr(from_yaml, fit).lr == getattr(by_keyword, fit).lr == 0.1
+    assert from_yaml.refit.lr == by_keyword.refit.lr == 0.1
     generator = torch.Generator().manual_seed(0)
     xy = torch.randint(0, 32, (400, 2), generator=generator).float()
     events = EventBatch(xy, torch.linspace(0, 0.01, 400), torch.ones(400))

@@ -106,8 +106,6 @@ class ContrastMaximization(nn.Module):
         objective_function(objective)
         if optimizer not in OPTIMIZERS:
             raise ConfigError(f"optimizer must be {' or '.join(map(repr, OPTIMIZERS))}, got {optimizer!r}")
-        if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 1:
-            raise ConfigError(f"max_iter must be an integer >= 1, got {max_iter}")
         if lr is not None and not lr > 0:
             raise ConfigError(f"lr must be > 0, got {lr}")
         if not collapse_weight >= 0:
@@ -116,13 +114,22 @@ class ContrastMaximization(nn.Module):
         self.sensor_size = check_sensor_size(sensor_size or model.sensor_size)
         self.objective = objective
         self.optimizer = optimizer
-        self.max_iter = int(max_iter)
+        self.max_iter = _checked_max_iter(max_iter)
         self.lr = float(lr) if lr is not None else (1.0 if optimizer == "lbfgs" else 0.1)
         self.sigma = float(sigma)
         self.collapse_weight = float(collapse_weight)
         self.tol = float(tol)
 
-    def forward(self, events: EventBatch, init_params: Tensor, weights: Tensor | None = None) -> Tensor:
+    def forward(
+        self,
+        events: EventBatch,
+        init_params: Tensor,
+        weights: Tensor | None = None,
+        *,
+        max_iter: int | None = None,
+    ) -> Tensor:
+        """Refined parameters (class docstring); ``max_iter`` replaces the module's for this call."""
+        max_iter = self.max_iter if max_iter is None else _checked_max_iter(max_iter)
         n_params = self.model.n_params
         if not torch.isfinite(init_params).all():
             raise ModelError("init_params hold NaN or inf: every model's parameters must be finite")
@@ -139,7 +146,7 @@ class ContrastMaximization(nn.Module):
                     f"weights must be (B, K, N_max) = {(*init_params.shape[:2], longest)}, "
                     f"got {tuple(weights.shape)}"
                 )
-            return self._fit_windows(events, init_params.detach(), weights)
+            return self._fit_windows(events, init_params.detach(), weights, max_iter)
         n_events = events.xy.shape[0]
         if events.xy.ndim != 2 or events.xy.shape[1] != 2 or events.t.shape != (n_events,):
             raise ShapeError(
@@ -156,16 +163,16 @@ class ContrastMaximization(nn.Module):
                 f"weights must be (K, N) = {(init_params.shape[0], n_events)}, got {tuple(weights.shape)}"
             )
         weights = None if weights is None else weights[None]
-        return self._fit_windows(batch_of_one(events), init_params.detach()[None], weights)[0]
+        return self._fit_windows(batch_of_one(events), init_params.detach()[None], weights, max_iter)[0]
 
-    def _fit_windows(self, events: EventBatch, init: Tensor, weights: Tensor | None) -> Tensor:
+    def _fit_windows(self, events: EventBatch, init: Tensor, weights: Tensor | None, max_iter: int) -> Tensor:
         """Fit the clusters of a padded batch: ``init`` :math:`(B, K, P)`, ``weights`` :math:`(B, K, N)`."""
         if torch.is_inference_mode_enabled():
             # The fits need autograd, which inference mode forbids even under enable_grad: they leave it,
             # on ordinary copies of the inference tensors they were given (a caller's evaluation loop).
             with torch.inference_mode(False):
                 events = EventBatch(*(_ordinary(field) for field in events))
-                return self._fit_windows(events, _ordinary(init), _ordinary(weights))
+                return self._fit_windows(events, _ordinary(init), _ordinary(weights), max_iter)
         n_clusters = init.shape[1]
         mask = events.mask
         durations = torch.where(mask, events.t.abs(), 0).amax(dim=1).tolist()
@@ -187,7 +194,7 @@ class ContrastMaximization(nn.Module):
             warp, own_weights, params, self.sensor_size, window, cropped=weights is not None
         )
         warp = warp._replace(xy=warp.xy - origin[:, None])
-        refined = self._solve(warp, own_weights, params * scale, scale, fits) / scale
+        refined = self._solve(warp, own_weights, params * scale, scale, fits, max_iter) / scale
         fitted[index] = torch.where(torch.isfinite(refined).all(dim=1, keepdim=True), refined, params)
         return fitted.view_as(init)
 
@@ -198,6 +205,7 @@ class ContrastMaximization(nn.Module):
         start: Tensor,
         scale: Tensor,
         fits: list[tuple[Tensor, tuple[int, int]]],
+        max_iter: int,
     ) -> Tensor:
         """Minimise every cluster's loss; ``start`` and the result :math:`(C, P)` are conditioned.
 
@@ -210,7 +218,7 @@ class ContrastMaximization(nn.Module):
             if chosen:
                 fit_set = _FitSet(self, warp, weights, start, scale, chosen, cropped)
                 conditioned[fit_set.index] = minimise(
-                    fit_set.evaluate, fit_set.starts, max_iter=self.max_iter, lr=self.lr, tol=self.tol
+                    fit_set.evaluate, fit_set.starts, max_iter=max_iter, lr=self.lr, tol=self.tol
                 )
         return conditioned
 
@@ -311,3 +319,9 @@ def _ordinary(tensor: Tensor | None) -> Tensor | None:
     if tensor is not None and tensor.is_inference():
         return tensor.clone()
     return tensor
+
+
+def _checked_max_iter(max_iter) -> int:
+    if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 1:
+        raise ConfigError(f"max_iter must be an integer >= 1, got {max_iter}")
+    return int(max_iter)

@@ -238,7 +238,7 @@ class Discovery:
         model: the motion model.
         sensor_size: ``(H, W)``.
         config: level two's settings (``discovery_*``, the refits' objective, blur and collapse guard).
-        fit: the proposals' contrast maximisation (``discovery_max_iter`` iterations).
+        fit: the contrast maximisation of the proposals (run for ``discovery_max_iter`` iterations).
     """
 
     def __init__(
@@ -287,7 +287,7 @@ class Discovery:
             for row, candidate in enumerate(candidates):
                 start[row, : counts[row]] = candidate.start
                 members[row, : counts[row], : candidate.members.shape[1]] = candidate.members
-            fitted = self.fit(events, start, members)
+            fitted = self.fit(events, start, members, max_iter=self.config.discovery_max_iter)
         for row, (state, candidate) in enumerate(zip(states, candidates, strict=True)):
             accepted = self._accepted(candidate, fitted[row][: counts[row]])
             proposed = fitted[row][: counts[row]][accepted]

@@ -195,13 +195,9 @@ class GraphCutContrastSegmenter(nn.Module):
             "sigma": cfg.sigma,
             "collapse_weight": cfg.collapse_weight,
         }
-        warm_max_iter = cfg.max_iter if cfg.warm_max_iter is None else cfg.warm_max_iter
+        # One contrast maximisation for the refits and discovery's fits; each call gives its iterations.
         self.refit = ContrastMaximization(self.model, self.sensor_size, max_iter=cfg.max_iter, **refit)
-        self.warm_refit = ContrastMaximization(self.model, self.sensor_size, max_iter=warm_max_iter, **refit)
-        self.proposal_fit = ContrastMaximization(
-            self.model, self.sensor_size, max_iter=cfg.discovery_max_iter, **refit
-        )
-        self.discovery = Discovery(self.model, self.sensor_size, cfg, self.proposal_fit)
+        self.discovery = Discovery(self.model, self.sensor_size, cfg, self.refit)
         self.object_phase = ObjectPhase(self.model, self.sensor_size, cfg)
 
     @classmethod
@@ -355,13 +351,15 @@ class GraphCutContrastSegmenter(nn.Module):
             if proposing:
                 self.discovery.propose(select_windows(batch, proposing), proposing)
                 clock.lap("discovery", proposing)
-            for refit, first in ((self.refit, True), (self.warm_refit, False)):
+            config = self.config
+            warm_max_iter = config.max_iter if config.warm_max_iter is None else config.warm_max_iter
+            for max_iter, first in ((config.max_iter, True), (warm_max_iter, False)):
                 # Only the first refit of a window starts from the initial pool (see warm_max_iter).
                 chosen = [
                     state for state in active if state.step == "refit" and (len(state.history) == 1) == first
                 ]
                 if chosen:
-                    self._refit(refit, select_windows(batch, chosen), chosen)
+                    self._refit(max_iter, select_windows(batch, chosen), chosen)
                     clock.lap("refit", chosen)
             active = [state for state in active if state.step != "stop"]
         results = self._results(batch, states)
@@ -483,7 +481,7 @@ class GraphCutContrastSegmenter(nn.Module):
         else:
             state.step = self.object_phase.next_step(state)
 
-    def _refit(self, refit: ContrastMaximization, events: EventBatch, states: list[WindowState]) -> None:
+    def _refit(self, max_iter: int, events: EventBatch, states: list[WindowState]) -> None:
         """Refit every cluster of the windows by contrast maximisation of its own events, all at once."""
         params, _ = padded_pools([state.params for state in states])
         labels = padded_rows([state.labels for state in states], events.t.shape[1], device=events.xy.device)
@@ -491,7 +489,7 @@ class GraphCutContrastSegmenter(nn.Module):
         if self.config.refit_max_events is not None:
             members = subsample(members, self.config.refit_max_events)
         with torch.enable_grad():
-            fitted = refit(events, params, members).detach()
+            fitted = self.refit(events, params, members, max_iter=max_iter).detach()
         for row, state in enumerate(states):
             state.params = fitted[row, : state.params.shape[0]]
 

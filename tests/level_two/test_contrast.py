@@ -511,3 +511,12 @@ class TestCrops:
             assert displacement_error(model, fitted[k], alone.numpy(), own, DURATION) < 0.01
         assert displacement_error(model, start[0], truths[0], batches[0], DURATION) > 0.25
         assert displacement_error(model, fitted[0], truths[0], batches[0], DURATION) < 0.02
+
+
+def test_max_iter_of_one_call():
+    # One module serves fits of several lengths: a call's max_iter equals a module built with it.
+    model, _, batch, start, weights = _fit_windows()
+    fitted = ContrastMaximization(model, max_iter=20)(batch, start, weights, max_iter=3)
+    assert torch.equal(fitted, ContrastMaximization(model, max_iter=3)(batch, start, weights))
+    with pytest.raises(ConfigError, match="max_iter must be an integer >= 1"):
+        ContrastMaximization(model)(batch, start, weights, max_iter=0)
