@@ -20,11 +20,12 @@ from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
 from evseg_torch.level_two.contrast import (
     DEFAULT_COLLAPSE_WEIGHT,
     REFERENCE_OBJECTIVES,
-    objective_function,
+    check_objective,
+    image_variance,
     warped_contrast_loss,
 )
 from evseg_torch.level_two.crops import fit_crops, gather_members
-from evseg_torch.level_two.iwe import splat_events
+from evseg_torch.level_two.iwe import extent_mask, splat_events
 from evseg_torch.level_two.linear_warp import LinearWarp
 from evseg_torch.level_two.solver import adam, lbfgs
 from evseg_torch.motion import MotionModel
@@ -103,7 +104,7 @@ class ContrastMaximization(nn.Module):
         tol: float = 1e-6,
     ) -> None:
         super().__init__()
-        objective_function(objective)
+        check_objective(objective)
         if optimizer not in OPTIMIZERS:
             raise ConfigError(f"optimizer must be {' or '.join(map(repr, OPTIMIZERS))}, got {optimizer!r}")
         if lr is not None and not lr > 0:
@@ -232,16 +233,17 @@ class ContrastMaximization(nn.Module):
 
 class _Rows(NamedTuple):
     """What the loss of some clusters needs: their warp, weights :math:`(R, n)`, scales :math:`(R, P)`,
-    image sizes :math:`(R, 2)` in the canvas (``None``: the whole canvas) and reference images."""
+    image sizes :math:`(R, 2)` in the canvas (``None``: the whole canvas) and the variances of their
+    reference images :math:`(R,)` (objectives that need one)."""
 
     warp: LinearWarp
     weights: Tensor
     scale: Tensor
     extent: Tensor | None
-    reference: Tensor | None
+    reference_variance: Tensor | None
 
     def select(self, index: Tensor) -> _Rows:
-        pick = (None if value is None else value[index] for value in (self.extent, self.reference))
+        pick = (None if value is None else value[index] for value in (self.extent, self.reference_variance))
         return _Rows(self.warp.rows(index), self.weights[index], self.scale[index], *pick)
 
 
@@ -277,10 +279,13 @@ class _FitSet:
             counts = torch.tensor([len(rows) for rows, _ in fits], device=start.device)
             extent = torch.tensor(sizes, device=start.device).repeat_interleave(counts, dim=0)
         warp, weights = warp.rows(self.index), weights[self.index]
-        reference = None
+        reference_variance = None
         if cmax.objective in REFERENCE_OBJECTIVES:
+            # A constant of the fits: the variance of each cluster's unwarped image, once.
             reference = splat_events(warp.xy, self.size, weights, cmax.sigma, extent=extent).detach()
-        self.all_rows = _Rows(warp, weights, scale[self.index], extent, reference)
+            mask = None if extent is None else extent_mask(extent, self.size)
+            reference_variance = image_variance(reference, mask=mask)
+        self.all_rows = _Rows(warp, weights, scale[self.index], extent, reference_variance)
         self.starts = start[self.index]
         with torch.no_grad():
             norm = self._losses(self.all_rows, self.starts).abs()
@@ -309,7 +314,7 @@ class _FitSet:
             cmax.objective,
             cmax.sigma,
             cmax.collapse_weight,
-            rows.reference,
+            rows.reference_variance,
             rows.extent,
         )
 

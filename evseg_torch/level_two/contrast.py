@@ -37,9 +37,9 @@ from evseg_torch.config import LevelTwoConfig
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.checks import check_image, check_padded_batch, check_sensor_size
-from evseg_torch.level_two.iwe import extent_mask, splat_events
-from evseg_torch.level_two.iwe_variance import iwe_variance
-from evseg_torch.level_two.linear_warp import LinearWarp, sum_ignoring_padding
+from evseg_torch.level_two.iwe import splat_events
+from evseg_torch.level_two.iwe_variance import centred_variance, iwe_variance
+from evseg_torch.level_two.linear_warp import LinearWarp
 from evseg_torch.motion import MotionModel
 
 DEFAULT_COLLAPSE_WEIGHT = LevelTwoConfig.collapse_weight
@@ -70,17 +70,7 @@ def image_variance(iwe: Tensor, reference: Tensor | None = None, mask: Tensor | 
         tensor(1.)
     """
     check_image(iwe, "iwe")
-    if mask is None:
-        flat = iwe.flatten(-2)
-        # Written out: torch.var's forward and backward take twice as long on CPU.
-        return (flat - flat.mean(dim=-1, keepdim=True)).square().mean(dim=-1)
-    # Sums that the zeros beyond an image's pixels do not change: an image has the same variance and
-    # gradient, bit for bit, alone and in any larger canvas. The mean is detached: the deviations sum to
-    # zero, so no gradient flows through it, and autograd's rounded sum of them would depend on the canvas.
-    count = mask.sum(dim=(-2, -1))
-    mean = sum_ignoring_padding(sum_ignoring_padding(torch.where(mask, iwe, 0))) / count
-    deviation = torch.where(mask, iwe - mean.detach()[..., None, None], 0)
-    return sum_ignoring_padding(sum_ignoring_padding(deviation.square())) / count
+    return centred_variance(iwe, mask)[0]
 
 
 def normalized_variance(iwe: Tensor, reference: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -157,7 +147,7 @@ def contrast_loss(
         >>> contrast_loss(Affine4((8, 8)), events, torch.zeros(3, 4)).shape
         torch.Size([3])
     """
-    objective_function(objective)
+    check_objective(objective)
     if not collapse_weight >= 0:
         raise ConfigError(f"collapse_weight must be >= 0, got {collapse_weight}")
     sensor_size = sensor_size or model.sensor_size
@@ -167,11 +157,14 @@ def contrast_loss(
         raise ShapeError(
             f"weights must be (K, N) or (N,) with N = {events.xy.shape[-2]}, got {tuple(weights.shape)}"
         )
-    if objective in REFERENCE_OBJECTIVES and reference is None:
-        reference = splat_events(events.xy, sensor_size, weights, sigma)
+    reference_variance = None
+    if objective in REFERENCE_OBJECTIVES:
+        if reference is None:
+            reference = splat_events(events.xy, sensor_size, weights, sigma)
+        reference_variance = image_variance(reference)
     warp = LinearWarp.build(model, events, with_area=collapse_weight > 0)
     return warped_contrast_loss(
-        warp, params, weights, sensor_size, objective, sigma, collapse_weight, reference
+        warp, params, weights, sensor_size, objective, sigma, collapse_weight, reference_variance
     )
 
 
@@ -207,12 +200,13 @@ def warped_contrast_loss(
     objective: str,
     sigma: float,
     collapse_weight: float,
-    reference: Tensor | None,
+    reference_variance: Tensor | None,
     extent: Tensor | None = None,
 ) -> Tensor:
     """Negative contrasts :math:`(...)` of warped events, ``objective`` a key of
-    :data:`CONTRAST_OBJECTIVES`; with ``extent`` :math:`(..., 2)`, each cluster's image is only its extent
-    of the ``sensor_size`` canvas (see :func:`~evseg_torch.level_two.iwe.splat_events`)."""
+    :data:`CONTRAST_OBJECTIVES` (``reference_variance`` :math:`(...)`, the variance of the reference
+    images, for those that need one); with ``extent`` :math:`(..., 2)`, each cluster's image is only its
+    extent of the ``sensor_size`` canvas (see :func:`~evseg_torch.level_two.iwe.splat_events`)."""
     if collapse_weight > 0:
         votes = warp.area(params).clamp_min(_MIN_AREA) ** collapse_weight
         weights = votes if weights is None else votes * weights
@@ -227,8 +221,7 @@ def warped_contrast_loss(
     variance = variance.view(lead)
     if objective not in REFERENCE_OBJECTIVES:
         return -variance
-    mask = None if extent is None else extent_mask(extent, sensor_size).view(*lead, *sensor_size)
-    return -variance / image_variance(reference, mask=mask)
+    return -variance / reference_variance
 
 
 def padded_contrast_loss(
@@ -274,7 +267,7 @@ def padded_contrast_loss(
         >>> padded_contrast_loss(Affine4((8, 8)), batch_windows([one, two]), torch.zeros(2, 3, 4)).shape
         torch.Size([2, 3])
     """
-    objective_function(objective)
+    check_objective(objective)
     if not collapse_weight >= 0:
         raise ConfigError(f"collapse_weight must be >= 0, got {collapse_weight}")
     check_padded_batch(events)
@@ -293,12 +286,12 @@ def padded_contrast_loss(
     # where, not a product: padding must count 0 even where a caller's padded weights hold NaN.
     weights = mask.to(events.xy.dtype) if weights is None else torch.where(mask, weights, 0.0)
     shared = EventBatch(events.xy[:, None], events.t[:, None], events.p[:, None])
-    reference = None
+    reference_variance = None
     if objective in REFERENCE_OBJECTIVES:
-        reference = splat_events(shared.xy, sensor_size, weights, sigma)
+        reference_variance = image_variance(splat_events(shared.xy, sensor_size, weights, sigma))
     warp = LinearWarp.build(model, shared, with_area=collapse_weight > 0)
     return warped_contrast_loss(
-        warp, params, weights, sensor_size, objective, sigma, collapse_weight, reference
+        warp, params, weights, sensor_size, objective, sigma, collapse_weight, reference_variance
     )
 
 
@@ -350,7 +343,7 @@ class ContrastLoss(nn.Module):
         reduction: str = "mean",
     ) -> None:
         super().__init__()
-        objective_function(objective)
+        check_objective(objective)
         if reduction not in ("none", "mean", "sum"):
             raise ConfigError(f"reduction must be 'none', 'mean' or 'sum', got {reduction!r}")
         self.model = model
@@ -424,10 +417,7 @@ class ContrastLoss(nn.Module):
         )
 
 
-def objective_function(name: str) -> Callable[..., Tensor]:
-    try:
-        return CONTRAST_OBJECTIVES[name]
-    except KeyError:
-        raise ConfigError(
-            f"unknown contrast objective {name!r}; choose one of {sorted(CONTRAST_OBJECTIVES)}"
-        ) from None
+def check_objective(name: str) -> None:
+    """``name`` is a key of :data:`CONTRAST_OBJECTIVES` (:class:`ConfigError` otherwise)."""
+    if name not in CONTRAST_OBJECTIVES:
+        raise ConfigError(f"unknown contrast objective {name!r}; choose one of {sorted(CONTRAST_OBJECTIVES)}")

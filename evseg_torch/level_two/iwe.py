@@ -151,16 +151,8 @@ def splat_events(
             ) from None
     check_blur(sigma, truncate)
 
-    shape = (*batch_shape, xy.shape[-2])
-    n_images, padded_size = math.prod(batch_shape), (height + 4) * (width + 4)
     corner, taps = bilinear_taps(xy, weights, height, width)
-    offsets = torch.arange(n_images, device=xy.device).view(*batch_shape, 1) * padded_size
-    corner = (corner.expand(shape) + offsets).reshape(-1)
-    # One scatter per tap: stacking the four taps into one index costs more than the scatters.
-    image = taps[0][1].new_zeros(n_images * padded_size)
-    for step, tap in taps:
-        image = image.index_add_(0, corner + step, tap.expand(shape).reshape(-1))
-    image = image.view(*batch_shape, height + 4, width + 4)[..., 2 : height + 2, 2 : width + 2]
+    image, _ = scatter_taps(corner, taps, (*batch_shape, xy.shape[-2]), height, width)
     if extent is not None:
         inside = extent_mask(extent, (height, width))
         image = image * (inside if polarity is None else inside.unsqueeze(-3))
@@ -305,6 +297,25 @@ class ImageOfWarpedEvents(nn.Module):
 
     def extra_repr(self) -> str:
         return f"sensor_size={self.sensor_size}, sigma={self.sigma}, truncate={self.truncate}"
+
+
+def scatter_taps(
+    corner: Tensor, taps: list[tuple[int, Tensor]], shape: tuple[int, ...], height: int, width: int
+) -> tuple[Tensor, Tensor]:
+    """Bilinear votes into images: the taps of :func:`bilinear_taps`, broadcast to ``shape``
+    :math:`(..., N)`, added into one image per leading index, :math:`(..., H, W)`; and each position's
+    top-left tap as an index into those images flattened with their 2-pixel padding, :math:`(..., N)`
+    (to read an image of the same layout back at the taps)."""
+    batch_shape = shape[:-1]
+    n_images, padded_size = math.prod(batch_shape), (height + 4) * (width + 4)
+    offsets = torch.arange(n_images, device=corner.device).view(*batch_shape, 1) * padded_size
+    index = corner.expand(shape) + offsets
+    flat = index.reshape(-1)
+    # One scatter per tap: stacking the four taps into one index costs more than the scatters.
+    image = taps[0][1].new_zeros(n_images * padded_size)
+    for step, tap in taps:
+        image = image.index_add_(0, flat + step, tap.expand(shape).reshape(-1))
+    return image.view(*batch_shape, height + 4, width + 4)[..., 2 : height + 2, 2 : width + 2], index
 
 
 def bilinear_taps(

@@ -18,7 +18,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from evseg_torch.errors import ShapeError
-from evseg_torch.level_two.iwe import bilinear_taps, extent_mask, gaussian_blur
+from evseg_torch.level_two.iwe import bilinear_taps, extent_mask, gaussian_blur, scatter_taps
 from evseg_torch.level_two.linear_warp import sum_ignoring_padding
 
 
@@ -47,44 +47,57 @@ def iwe_variance(
     return _IWEVariance.apply(xy, weights, size, float(sigma), extent)
 
 
+def centred_variance(image: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | int]:
+    r"""Variance of each image over its pixels, with the deviations from its mean and the pixel count.
+
+    The one computation behind :func:`~evseg_torch.level_two.contrast.image_variance` and
+    :func:`iwe_variance`. With ``mask`` :math:`(..., H, W)`, broadcastable (the pixels of each image in
+    a larger canvas), the sums are ones that the zeros beyond an image's pixels do not change, so an
+    image has the same variance and gradient, bit for bit, alone and in any larger canvas; the mean is
+    then detached (the deviations sum to zero, so no gradient flows through it, and autograd's rounded
+    sum of them would depend on the canvas).
+
+    Args:
+        image: :math:`(..., H, W)`.
+        mask: optional bool :math:`(..., H, W)`; ``None`` for all pixels.
+
+    Returns:
+        ``(variance, deviation, count)``: :math:`(...)`, :math:`(..., H, W)` (0 outside the mask), and
+        the pixels counted, :math:`(...)` or ``H * W``.
+    """
+    if mask is None:
+        flat = image.flatten(-2)
+        # Written out: torch.var's forward and backward take twice as long on CPU.
+        deviation = flat - flat.mean(dim=-1, keepdim=True)
+        return deviation.square().mean(dim=-1), deviation.view_as(image), flat.shape[-1]
+    count = mask.sum(dim=(-2, -1))
+    mean = sum_ignoring_padding(sum_ignoring_padding(torch.where(mask, image, 0))) / count
+    deviation = torch.where(mask, image - mean.detach()[..., None, None], 0)
+    return sum_ignoring_padding(sum_ignoring_padding(deviation.square())) / count, deviation, count
+
+
 class _IWEVariance(torch.autograd.Function):
     @staticmethod
     def forward(ctx, xy: Tensor, weights: Tensor, size: tuple[int, int], sigma: float, extent):
-        height, width = size
-        n_rows = xy.shape[0]
-        padded = (height + 4) * (width + 4)
-        corner, taps = bilinear_taps(xy, weights, height, width)
-        index = corner + torch.arange(n_rows, device=xy.device)[:, None] * padded
-        image = xy.new_zeros(n_rows * padded)
-        for step, tap in taps:
-            image.index_add_(0, (index + step).flatten(), tap.flatten())
-        image = image.view(n_rows, height + 4, width + 4)[:, 2 : height + 2, 2 : width + 2]
+        corner, taps = bilinear_taps(xy, weights, *size)
+        image, index = scatter_taps(corner, taps, weights.shape, *size)
         inside = None if extent is None else extent_mask(extent, size)
         if inside is not None:
             image = image * inside
-        blurred = gaussian_blur(image, sigma)
-        if inside is None:
-            count = torch.full((n_rows,), float(height * width), dtype=xy.dtype, device=xy.device)
-            flat = blurred.flatten(-2)  # as image_variance, to round alike
-            deviation = (flat - flat.mean(dim=-1, keepdim=True)).view_as(blurred)
-            variance = deviation.flatten(-2).square().mean(dim=-1)
-        else:
-            count = inside.sum(dim=(-2, -1)).to(xy.dtype)
-            mean = sum_ignoring_padding(sum_ignoring_padding(torch.where(inside, blurred, 0))) / count
-            deviation = torch.where(inside, blurred - mean[:, None, None], 0)
-            variance = sum_ignoring_padding(sum_ignoring_padding(deviation.square())) / count
+        variance, deviation, count = centred_variance(gaussian_blur(image, sigma), inside)
         fraction = xy - xy.detach().floor()
-        ctx.save_for_backward(index, fraction, weights, deviation, count)
-        ctx.inside, ctx.sigma, ctx.size = inside, sigma, size
+        ctx.save_for_backward(index, fraction, weights, deviation)
+        ctx.count, ctx.inside, ctx.sigma, ctx.size = count, inside, sigma, size
         return variance
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad: Tensor):
-        index, fraction, weights, deviation, count = ctx.saved_tensors
+        index, fraction, weights, deviation = ctx.saved_tensors
+        count = ctx.count if isinstance(ctx.count, int) else ctx.count[:, None, None]
         height, width = ctx.size
         # The deviations sum to zero over each image, so the mean carries no gradient.
-        grad_image = gaussian_blur(deviation * (2 * grad / count)[:, None, None], ctx.sigma)
+        grad_image = gaussian_blur(deviation * (2 * grad[:, None, None] / count), ctx.sigma)
         if ctx.inside is not None:
             grad_image = grad_image * ctx.inside
         padded = grad_image.new_zeros(grad_image.shape[0], height + 4, width + 4)

@@ -37,7 +37,7 @@ from torch import Tensor, nn
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
-from evseg_torch.level_two.contrast import DEFAULT_COLLAPSE_WEIGHT, objective_function, padded_contrast_loss
+from evseg_torch.level_two.contrast import DEFAULT_COLLAPSE_WEIGHT, check_objective, padded_contrast_loss
 from evseg_torch.motion import MotionModel
 
 __all__ = ["ASSIGNMENT_TOLERANCE", "MultiModelContrastLoss", "multi_model_contrast_loss"]
@@ -273,7 +273,7 @@ def _check_assignments(assignments: Tensor, mask: Tensor) -> None:
 
 
 def _check_options(objective: str, collapse_weight: float, balance_weight: float, reduction: str) -> None:
-    objective_function(objective)
+    check_objective(objective)
     if not collapse_weight >= 0:
         raise ConfigError(f"collapse_weight must be >= 0, got {collapse_weight}")
     if not (math.isfinite(balance_weight) and balance_weight >= 0):
