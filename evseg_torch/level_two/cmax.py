@@ -22,7 +22,7 @@ from evseg_torch.level_two.contrast import (
     REFERENCE_OBJECTIVES,
     check_objective,
     image_variance,
-    warped_contrast_loss,
+    warped_contrast_loss_and_grad,
 )
 from evseg_torch.level_two.crops import fit_crops, gather_members
 from evseg_torch.level_two.iwe import extent_mask, splat_events
@@ -38,14 +38,15 @@ class ContrastMaximization(nn.Module):
     r"""Refine the motion parameters of K clusters at once by contrast maximisation.
 
     Each cluster's parameters maximise the contrast of the image of its own (weighted) events, as in
-    EMSGC's model refit, but with exact gradients by autograd. For conditioning, the optimiser works in
-    pixels of displacement over the window (parameters times ``model.displacement_scale(duration)``), and
-    each cluster's loss is divided by its magnitude at the start, so that every cluster weighs alike. With
-    ``weights``, each cluster's events of non-zero weight are gathered first, so a fit costs one pass over
-    the window's events, not K, and clusters that fill at most a quarter of the sensor are fitted in
-    crops around them (see :func:`fit_crops`). The warp's linear map of the parameters is built once per
-    call. Gradients are enabled inside, so a caller may run under ``torch.no_grad()`` or
-    ``torch.inference_mode()``.
+    EMSGC's model refit, but with exact gradients (chained by hand through the loss,
+    :func:`~evseg_torch.level_two.contrast.warped_contrast_loss_and_grad`). For conditioning, the
+    optimiser works in pixels of displacement over the window (parameters times
+    ``model.displacement_scale(duration)``), and each cluster's loss is divided by its magnitude at the
+    start, so that every cluster weighs alike. With ``weights``, each cluster's events of non-zero weight
+    are gathered first, so a fit costs one pass over the window's events, not K, and clusters that fill at
+    most a quarter of the sensor are fitted in crops around them (see :func:`fit_crops`). The warp's
+    linear map of the parameters is built once per call. The fits need no autograd, so a caller may run
+    them under ``torch.no_grad()`` or ``torch.inference_mode()``.
 
     Every cluster is a problem of its own, as in EMSGC's refit of all models: its parameters minimise its
     own normalised loss. All clusters of all windows of a call are solved together by the batched
@@ -168,12 +169,6 @@ class ContrastMaximization(nn.Module):
 
     def _fit_windows(self, events: EventBatch, init: Tensor, weights: Tensor | None, max_iter: int) -> Tensor:
         """Fit the clusters of a padded batch: ``init`` :math:`(B, K, P)`, ``weights`` :math:`(B, K, N)`."""
-        if torch.is_inference_mode_enabled():
-            # The fits need autograd, which inference mode forbids even under enable_grad: they leave it,
-            # on ordinary copies of the inference tensors they were given (a caller's evaluation loop).
-            with torch.inference_mode(False):
-                events = EventBatch(*(_ordinary(field) for field in events))
-                return self._fit_windows(events, _ordinary(init), _ordinary(weights), max_iter)
         n_clusters = init.shape[1]
         mask = events.mask
         durations = torch.where(mask, events.t.abs(), 0).amax(dim=1).tolist()
@@ -210,17 +205,32 @@ class ContrastMaximization(nn.Module):
     ) -> Tensor:
         """Minimise every cluster's loss; ``start`` and the result :math:`(C, P)` are conditioned.
 
-        Fits in crops and fits on the whole sensor are solved apart, so that crops stay small.
+        Fits in crops and fits on the whole sensor are evaluated apart, so that crops stay small, but
+        solved as one problem set: each round of the solver evaluates both, and its bookkeeping is
+        shared (each row's path is its own either way).
         """
-        minimise = lbfgs if self.optimizer == "lbfgs" else adam
-        conditioned = torch.empty_like(start)
+        fit_sets = []
         for cropped in (True, False):
             chosen = [(rows, size) for rows, size in fits if (size != self.sensor_size) == cropped]
             if chosen:
-                fit_set = _FitSet(self, warp, weights, start, scale, chosen, cropped)
-                conditioned[fit_set.index] = minimise(
-                    fit_set.evaluate, fit_set.starts, max_iter=max_iter, lr=self.lr, tol=self.tol
-                )
+                fit_sets.append(_FitSet(self, warp, weights, start, scale, chosen, cropped))
+        ends = np.cumsum([len(fit_set.index) for fit_set in fit_sets]).tolist()
+
+        def evaluate(rows: Tensor, conditioned: Tensor) -> tuple[Tensor, Tensor]:
+            # Rows are ascending, so each fit set's rows are one slice of them.
+            cuts = [0, *torch.searchsorted(rows, torch.tensor(ends, device=rows.device)).tolist()]
+            parts = [
+                fit_set.evaluate(rows[begin:end] - first, conditioned[begin:end])
+                for fit_set, begin, end, first in zip(fit_sets, cuts, cuts[1:], [0, *ends], strict=False)
+                if end > begin
+            ]
+            return torch.cat([loss for loss, _ in parts]), torch.cat([grad for _, grad in parts])
+
+        minimise = lbfgs if self.optimizer == "lbfgs" else adam
+        conditioned = torch.empty_like(start)
+        index = torch.cat([fit_set.index for fit_set in fit_sets])
+        starts = torch.cat([fit_set.starts for fit_set in fit_sets])
+        conditioned[index] = minimise(evaluate, starts, max_iter=max_iter, lr=self.lr, tol=self.tol)
         return conditioned
 
     def extra_repr(self) -> str:
@@ -287,8 +297,7 @@ class _FitSet:
             reference_variance = image_variance(reference, mask=mask)
         self.all_rows = _Rows(warp, weights, scale[self.index], extent, reference_variance)
         self.starts = start[self.index]
-        with torch.no_grad():
-            norm = self._losses(self.all_rows, self.starts).abs()
+        norm = self._losses_and_grads(self.all_rows, self.starts, None)[0].abs()
         self.norm = torch.where(norm > 0, norm, torch.ones_like(norm))
 
     def evaluate(self, rows: Tensor, conditioned: Tensor) -> tuple[Tensor, Tensor]:
@@ -298,15 +307,14 @@ class _FitSet:
             chosen, norm = self.all_rows, self.norm
         else:
             chosen, norm = self.all_rows.select(rows), self.norm[rows]
-        conditioned = conditioned.detach().clone().requires_grad_()
-        with torch.enable_grad():
-            normalised = self._losses(chosen, conditioned) / norm
-            normalised.sum().backward()
-        return normalised.detach(), conditioned.grad
+        return self._losses_and_grads(chosen, conditioned.detach(), norm)
 
-    def _losses(self, rows: _Rows, conditioned: Tensor) -> Tensor:
+    def _losses_and_grads(
+        self, rows: _Rows, conditioned: Tensor, norm: Tensor | None
+    ) -> tuple[Tensor, Tensor]:
+        """Losses (divided by ``norm``) at conditioned values and their gradients in those values."""
         cmax = self.cmax
-        return warped_contrast_loss(
+        losses, grads = warped_contrast_loss_and_grad(
             rows.warp,
             conditioned / rows.scale,
             rows.weights,
@@ -316,14 +324,9 @@ class _FitSet:
             cmax.collapse_weight,
             rows.reference_variance,
             rows.extent,
+            norm,
         )
-
-
-def _ordinary(tensor: Tensor | None) -> Tensor | None:
-    """``tensor``, or an ordinary copy of it if it is an inference tensor (which autograd cannot save)."""
-    if tensor is not None and tensor.is_inference():
-        return tensor.clone()
-    return tensor
+        return losses, grads / rows.scale
 
 
 def _checked_max_iter(max_iter) -> int:

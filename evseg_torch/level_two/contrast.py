@@ -38,8 +38,8 @@ from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.checks import check_image, check_padded_batch, check_sensor_size
 from evseg_torch.level_two.iwe import splat_events
-from evseg_torch.level_two.iwe_variance import centred_variance, iwe_variance
-from evseg_torch.level_two.linear_warp import LinearWarp
+from evseg_torch.level_two.iwe_variance import centred_variance, iwe_variance, iwe_variance_and_pullback
+from evseg_torch.level_two.linear_warp import LinearWarp, area_from, area_gradient
 from evseg_torch.motion import MotionModel
 
 DEFAULT_COLLAPSE_WEIGHT = LevelTwoConfig.collapse_weight
@@ -207,10 +207,11 @@ def warped_contrast_loss(
     :data:`CONTRAST_OBJECTIVES` (``reference_variance`` :math:`(...)`, the variance of the reference
     images, for those that need one); with ``extent`` :math:`(..., 2)`, each cluster's image is only its
     extent of the ``sensor_size`` canvas (see :func:`~evseg_torch.level_two.iwe.splat_events`)."""
+    moved = warp.moved(params)
     if collapse_weight > 0:
-        votes = warp.area(params).clamp_min(_MIN_AREA) ** collapse_weight
+        votes = area_from(moved).clamp_min(_MIN_AREA) ** collapse_weight
         weights = votes if weights is None else votes * weights
-    warped = warp.warped(params)  # (..., n, 2)
+    warped = warp.warped_from(moved)  # (..., n, 2)
     lead = warped.shape[:-2]
     weights = warped.new_ones(()) if weights is None else weights
     weights = weights.expand(warped.shape[:-1]).reshape(-1, warped.shape[-2])
@@ -222,6 +223,62 @@ def warped_contrast_loss(
     if objective not in REFERENCE_OBJECTIVES:
         return -variance
     return -variance / reference_variance
+
+
+def warped_contrast_loss_and_grad(
+    warp: LinearWarp,
+    params: Tensor,
+    weights: Tensor,
+    sensor_size: tuple[int, int],
+    objective: str,
+    sigma: float,
+    collapse_weight: float,
+    reference_variance: Tensor | None,
+    extent: Tensor | None = None,
+    divisor: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    r""":func:`warped_contrast_loss` of R clusters and its gradient in their parameters, without autograd.
+
+    The fits' evaluations (:mod:`~evseg_torch.level_two.cmax`): the same loss, its gradient chained by
+    hand through the variance (:func:`~evseg_torch.level_two.iwe_variance.iwe_variance_and_pullback`),
+    the area-element votes and the linear warp, in a few dozen tensor operations and none of autograd's
+    bookkeeping (tested against autograd of :func:`warped_contrast_loss`).
+
+    Args:
+        warp: the clusters' warps, events :math:`(R, n)`.
+        params: :math:`(R, P)`.
+        weights: :math:`(R, n)`.
+        sensor_size, objective, sigma, collapse_weight, reference_variance, extent: as in
+            :func:`warped_contrast_loss`, for R clusters.
+        divisor: optional :math:`(R,)`; the losses are divided by it (each fit's normalisation).
+
+    Returns:
+        The losses :math:`(R,)` and their gradients :math:`(R, P)`.
+    """
+    with torch.no_grad():
+        moved = warp.moved(params)
+        votes = weights
+        if collapse_weight > 0:
+            area = area_from(moved)
+            clamped = area.clamp_min(_MIN_AREA)
+            powered = clamped**collapse_weight
+            votes = powered * weights
+        variance, pullback = iwe_variance_and_pullback(
+            warp.warped_from(moved), votes, sensor_size, sigma, extent
+        )
+        seed = -torch.ones_like(variance)
+        if objective in REFERENCE_OBJECTIVES:
+            seed = seed / reference_variance
+        if divisor is not None:
+            seed = seed / divisor
+        grad_xy, grad_votes = pullback(seed)
+        grad_moved = -grad_xy
+        if collapse_weight > 0:
+            # d votes / d area = weights γ a^(γ-1) where the area is above the clamp, 0 below it.
+            slope = torch.where(area >= _MIN_AREA, collapse_weight * powered / clamped, 0.0)
+            grad_area = (grad_votes * weights * slope)[..., None] * area_gradient(moved)
+            grad_moved = torch.cat([grad_moved, grad_area[..., 2:]], dim=-1)
+        return seed * variance, warp.params_gradient(grad_moved)
 
 
 def padded_contrast_loss(

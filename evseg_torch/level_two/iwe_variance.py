@@ -13,6 +13,8 @@ each event's position and weight.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
@@ -76,30 +78,36 @@ def centred_variance(image: Tensor, mask: Tensor | None = None) -> tuple[Tensor,
     return sum_ignoring_padding(sum_ignoring_padding(deviation.square())) / count, deviation, count
 
 
-class _IWEVariance(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, xy: Tensor, weights: Tensor, size: tuple[int, int], sigma: float, extent):
-        corner, taps = bilinear_taps(xy, weights, *size)
-        image, index = scatter_taps(corner, taps, weights.shape, *size)
-        inside = None if extent is None else extent_mask(extent, size)
-        if inside is not None:
-            image = image * inside
-        variance, deviation, count = centred_variance(gaussian_blur(image, sigma), inside)
-        fraction = xy - xy.detach().floor()
-        ctx.save_for_backward(index, fraction, weights, deviation)
-        ctx.count, ctx.inside, ctx.sigma, ctx.size = count, inside, sigma, size
-        return variance
+def iwe_variance_and_pullback(
+    xy: Tensor, weights: Tensor, size: tuple[int, int], sigma: float, extent: Tensor | None = None
+) -> tuple[Tensor, Callable[[Tensor], tuple[Tensor, Tensor]]]:
+    """:func:`iwe_variance` without autograd: the variances and the map of their gradient back to the
+    events, for callers that chain the gradient by hand (the fits' evaluations,
+    :func:`~evseg_torch.level_two.contrast.warped_contrast_loss_and_grad`).
 
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad: Tensor):
-        index, fraction, weights, deviation = ctx.saved_tensors
-        count = ctx.count if isinstance(ctx.count, int) else ctx.count[:, None, None]
-        height, width = ctx.size
+    Args:
+        xy, weights, size, sigma, extent: as in :func:`iwe_variance`.
+
+    Returns:
+        ``(variance, pullback)``: the variances :math:`(R,)`, and a function of the gradient
+        :math:`(R,)` of a loss with respect to them that returns the loss's gradients with respect to
+        ``xy`` :math:`(R, n, 2)` and ``weights`` :math:`(R, n)`.
+    """
+    corner, taps = bilinear_taps(xy, weights, *size)
+    image, index = scatter_taps(corner, taps, weights.shape, *size)
+    inside = None if extent is None else extent_mask(extent, size)
+    if inside is not None:
+        image = image * inside
+    variance, deviation, count = centred_variance(gaussian_blur(image, sigma), inside)
+    fraction = xy - xy.floor()
+
+    def pullback(grad: Tensor) -> tuple[Tensor, Tensor]:
+        height, width = size
+        pixels = count if isinstance(count, int) else count[:, None, None]
         # The deviations sum to zero over each image, so the mean carries no gradient.
-        grad_image = gaussian_blur(deviation * (2 * grad[:, None, None] / count), ctx.sigma)
-        if ctx.inside is not None:
-            grad_image = grad_image * ctx.inside
+        grad_image = gaussian_blur(deviation * (2 * grad[:, None, None] / pixels), sigma)
+        if inside is not None:
+            grad_image = grad_image * inside
         padded = grad_image.new_zeros(grad_image.shape[0], height + 4, width + 4)
         padded[:, 2 : height + 2, 2 : width + 2] = grad_image
         flat = padded.flatten()
@@ -112,4 +120,19 @@ class _IWEVariance(torch.autograd.Function):
         grad_weights = torch.lerp(top, bottom, fy)
         grad_x = weights * torch.lerp(g01 - g00, g11 - g10, fy)
         grad_y = weights * (bottom - top)
-        return torch.stack([grad_x, grad_y], dim=-1), grad_weights, None, None, None
+        return torch.stack([grad_x, grad_y], dim=-1), grad_weights
+
+    return variance, pullback
+
+
+class _IWEVariance(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, xy: Tensor, weights: Tensor, size: tuple[int, int], sigma: float, extent):
+        variance, ctx.pullback = iwe_variance_and_pullback(xy.detach(), weights.detach(), size, sigma, extent)
+        return variance
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor):
+        grad_xy, grad_weights = ctx.pullback(grad)
+        return grad_xy, grad_weights, None, None, None

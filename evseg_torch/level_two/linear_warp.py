@@ -28,14 +28,14 @@ class LinearWarp(NamedTuple):
     """The warp of fixed events as a linear map of the parameters (``v = J(x) params``): built once,
     it turns every evaluation of an optimiser into a few multiply-adds.
 
-    ``operator`` is ``t J(x)`` and ``step_x``, ``step_y`` are ``t (J(x + e) - J(x))`` for one-pixel steps
-    ``e`` (for the area element), all stored parameter-first, :math:`(P, ..., N, 2)`.
+    ``maps`` holds, parameter-first, :math:`(P, ..., N, C)`, what each parameter moves at each event:
+    its displacement ``t J(x)`` (channels 0–1) and, with the area element (``C = 6``), the change of the
+    warp's one-pixel steps ``t (J(x + e) - J(x))`` along ``e_x`` (channels 2–3) and ``e_y`` (4–5). One
+    product of the maps and the parameters (:meth:`moved`) gives all of them.
     """
 
     xy: Tensor
-    operator: Tensor
-    step_x: Tensor | None
-    step_y: Tensor | None
+    maps: Tensor
 
     @classmethod
     def build(cls, model: MotionModel, events: EventBatch, with_area: bool = True) -> LinearWarp:
@@ -46,25 +46,59 @@ class LinearWarp(NamedTuple):
                 f"got {tuple(events.t.shape)}"
             )
         t = events.t[..., None, None]
-        jacobian = model.jacobian(events.xy)
-        operator = _parameter_first(t * jacobian)
-        if not with_area:
-            return cls(events.xy, operator, None, None)
-        unit = torch.eye(2, dtype=events.xy.dtype, device=events.xy.device)
-        step_x, step_y = (_parameter_first(t * (model.jacobian(events.xy + e) - jacobian)) for e in unit)
-        return cls(events.xy, operator, step_x, step_y)
+        jacobian = model.jacobian(events.xy)  # (..., N, 2, P)
+        maps = [jacobian]
+        if with_area:
+            unit = torch.eye(2, dtype=events.xy.dtype, device=events.xy.device)
+            maps += [model.jacobian(events.xy + e) - jacobian for e in unit]
+        return cls(events.xy, (t * torch.cat(maps, dim=-2)).movedim(-1, 0).contiguous())
+
+    @property
+    def with_area(self) -> bool:
+        return self.maps.shape[-1] == 6
+
+    def moved(self, params: Tensor) -> Tensor:
+        """Each event's displacement and, with the area element, the changes of its one-pixel steps,
+        :math:`(..., N, C)` for parameters :math:`(..., P)` (class docstring)."""
+        return _apply(self.maps, params)
 
     def warped(self, params: Tensor) -> Tensor:
-        return self.xy - _apply(self.operator, params)
+        """The warped events :math:`(..., N, 2)`."""
+        return self.warped_from(self.moved(params))
+
+    def warped_from(self, moved: Tensor) -> Tensor:
+        return self.xy - moved[..., :2]
+
+    def area(self, params: Tensor) -> Tensor:
+        """The warp's area element ``det(dx'/dx)`` at each event, :math:`(..., N)`."""
+        return area_from(self.moved(params))
 
     def rows(self, index: Tensor) -> LinearWarp:
         """The warp of some clusters of a gathered :math:`(K, N, 2)` warp: rows ``index``."""
-        steps = (None if step is None else step[:, index] for step in (self.step_x, self.step_y))
-        return LinearWarp(self.xy[index], self.operator[:, index], *steps)
+        return LinearWarp(self.xy[index], self.maps[:, index])
 
-    def area(self, params: Tensor) -> Tensor:
-        dx, dy = _apply(self.step_x, params), _apply(self.step_y, params)
-        return (1 - dx[..., 0]) * (1 - dy[..., 1]) - dx[..., 1] * dy[..., 0]
+    def params_gradient(self, grad_moved: Tensor) -> Tensor:
+        """The gradient :math:`(..., P)` of a loss with respect to the parameters, from its gradient
+        :math:`(..., N, C)` with respect to :meth:`moved`, summed over the events by
+        :func:`sum_ignoring_padding` (events of zero gradient appended to a cluster do not change it,
+        bit for bit): the backward pass of :meth:`moved`, for gradients chained by hand."""
+        # A gradient of the displacement alone (C = 2) leaves out the maps of the steps.
+        maps = self.maps[..., : grad_moved.shape[-1]]
+        return _LinearMap.params_gradient(maps, grad_moved, (*grad_moved.shape[:-2], maps.shape[0]))
+
+
+def area_from(moved: Tensor) -> Tensor:
+    """The area element :math:`(..., N)` from :meth:`LinearWarp.moved` with the area element."""
+    dx, dy = moved[..., 2:4], moved[..., 4:6]
+    return (1 - dx[..., 0]) * (1 - dy[..., 1]) - dx[..., 1] * dy[..., 0]
+
+
+def area_gradient(moved: Tensor) -> Tensor:
+    """The derivative of :func:`area_from` in each channel of ``moved``, :math:`(..., N, 6)` (zero in the
+    displacement's)."""
+    dx, dy = moved[..., 2:4], moved[..., 4:6]
+    zero = torch.zeros_like(dx[..., 0])
+    return torch.stack([zero, zero, dy[..., 1] - 1, -dy[..., 0], -dx[..., 1], dx[..., 0] - 1], dim=-1)
 
 
 def _apply(operator: Tensor, params: Tensor) -> Tensor:
@@ -94,20 +128,33 @@ class _LinearMap(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, Tensor | None]:
         operator, params = ctx.saved_tensors
-        shape, n_params, lead = operator.shape, operator.shape[0], grad.shape[:-2]
-        # Both inputs viewed with all of the product's leading dimensions, parameters first.
-        operator = operator.view(n_params, *[1] * (len(lead) - len(shape) + 3), *shape[1:])
-        coefficients = params.movedim(-1, 0)
-        coefficients = coefficients.view(
-            n_params, *[1] * (len(lead) - params.ndim + 1), *params.shape[:-1], 1, 1
-        )
         grad_operator = grad_params = None
         if ctx.needs_input_grad[0]:
-            grad_operator = (grad * coefficients).sum_to_size(operator.shape).view(shape)
+            shape, lead = operator.shape, grad.shape[:-2]
+            coefficients = params.movedim(-1, 0)
+            coefficients = coefficients.view(
+                shape[0], *[1] * (len(lead) - params.ndim + 1), *params.shape[:-1], 1, 1
+            )
+            grad_operator = (
+                (grad * coefficients).sum_to_size(_broadcast_view(operator, lead).shape).view(shape)
+            )
         if ctx.needs_input_grad[1]:
-            sums = sum_ignoring_padding((operator * grad).flatten(-2))
-            grad_params = sums.sum_to_size(coefficients.shape[:-2]).movedim(0, -1).reshape(params.shape)
+            grad_params = _LinearMap.params_gradient(operator, grad, params.shape)
         return grad_operator, grad_params
+
+    @staticmethod
+    def params_gradient(operator: Tensor, grad: Tensor, params_shape: torch.Size) -> Tensor:
+        """The backward pass into the parameters ``params_shape`` :math:`(..., P)`."""
+        lead = grad.shape[:-2]
+        sums = sum_ignoring_padding((_broadcast_view(operator, lead) * grad).flatten(-2))
+        own_lead = (operator.shape[0], *[1] * (len(lead) - len(params_shape) + 1), *params_shape[:-1])
+        return sums.sum_to_size(own_lead).movedim(0, -1).reshape(params_shape)
+
+
+def _broadcast_view(operator: Tensor, lead: torch.Size) -> Tensor:
+    """``operator`` :math:`(P, ..., N, C)` viewed with all of the product's leading dimensions ``lead``."""
+    shape = operator.shape
+    return operator.view(shape[0], *[1] * (len(lead) - len(shape) + 3), *shape[1:])
 
 
 def sum_ignoring_padding(values: Tensor) -> Tensor:
@@ -123,7 +170,3 @@ def sum_ignoring_padding(values: Tensor) -> Tensor:
     blocks = nn.functional.pad(values, (0, -length % _SUM_BLOCK)).unflatten(-1, (-1, _SUM_BLOCK)).sum(dim=-1)
     # One block (images up to 256 pixels wide or high): its sum is the total, no cumsum needed.
     return blocks[..., 0] if blocks.shape[-1] == 1 else blocks.cumsum(dim=-1)[..., -1]
-
-
-def _parameter_first(operator: Tensor) -> Tensor:
-    return operator.movedim(-1, 0).contiguous()

@@ -488,8 +488,7 @@ class GraphCutContrastSegmenter(nn.Module):
         members = memberships(labels, params.shape[1], params.dtype)
         if self.config.refit_max_events is not None:
             members = subsample(members, self.config.refit_max_events)
-        with torch.enable_grad():
-            fitted = self.refit(events, params, members, max_iter=max_iter).detach()
+        fitted = self.refit(events, params, members, max_iter=max_iter)
         for row, state in enumerate(states):
             state.params = fitted[row, : state.params.shape[0]]
 

@@ -13,6 +13,8 @@ from evseg_torch.level_two.contrast import (
     normalized_variance,
     padded_contrast_loss,
     warp_area_element,
+    warped_contrast_loss,
+    warped_contrast_loss_and_grad,
 )
 from evseg_torch.level_two.crops import fit_crops, gather_members
 from evseg_torch.level_two.iwe import extent_mask, splat_events
@@ -520,3 +522,45 @@ def test_max_iter_of_one_call():
     assert torch.equal(fitted, ContrastMaximization(model, max_iter=3)(batch, start, weights))
     with pytest.raises(ConfigError, match="max_iter must be an integer >= 1"):
         ContrastMaximization(model)(batch, start, weights, max_iter=0)
+
+
+def _gathered_clusters(model, seed=0, n=60):
+    """Three clusters' gathered events (the third padded with zero-weight events) and their warp."""
+    generator = torch.Generator().manual_seed(seed)
+    xy = torch.rand(3, n, 2, generator=generator, dtype=torch.float64) * torch.tensor([30.0, 20.0]) + 1.0
+    t = torch.rand(3, n, generator=generator, dtype=torch.float64) * DURATION
+    weights = torch.rand(3, n, generator=generator, dtype=torch.float64)
+    weights[2, n // 2 :] = 0
+    params = torch.randn(3, model.n_params, generator=generator, dtype=torch.float64)
+    params = params * torch.as_tensor(model.displacement_scale(DURATION)).reciprocal() * 3.0
+    return LinearWarp.build(model, EventBatch(xy, t, torch.ones_like(t))), weights, params
+
+
+@pytest.mark.parametrize("model", [Translation((24, 34)), Affine4((24, 34)), Rotation3D((24, 34))])
+@pytest.mark.parametrize("objective", ["variance", "normalized_variance"])
+@pytest.mark.parametrize("collapse_weight", [0.0, 0.375])
+def test_loss_and_grad_by_hand_equal_autograd(model, objective, collapse_weight):
+    # The fits' evaluations chain the gradient by hand; autograd of the same loss agrees.
+    warp, weights, params = _gathered_clusters(model)
+    extent = torch.tensor([[24, 34], [18, 30], [24, 34]])
+    reference = torch.tensor([0.7, 1.1, 0.9], dtype=torch.float64)
+    divisor = torch.tensor([2.0, 0.5, 1.5], dtype=torch.float64)
+    args = ((24, 34), objective, 1.0, collapse_weight, reference, extent)
+    loss, grad = warped_contrast_loss_and_grad(warp, params, weights, *args, divisor)
+    leaf = params.clone().requires_grad_()
+    expected = warped_contrast_loss(warp, leaf, weights, *args) / divisor
+    expected.sum().backward()
+    torch.testing.assert_close(loss, expected.detach())
+    torch.testing.assert_close(grad, leaf.grad)
+
+
+def test_loss_and_grad_by_hand_ignore_padding_bit_for_bit():
+    # A cluster padded with zero-weight events (to the longest cluster of a batch) keeps its loss and
+    # gradient exactly: the fits in a batch take the steps they take alone.
+    model = Affine4((24, 34))
+    warp, weights, params = _gathered_clusters(model, n=300)
+    args = ((24, 34), "variance", 1.0, 0.375, None, None)
+    loss, grad = warped_contrast_loss_and_grad(warp, params, weights, *args)
+    own = LinearWarp(warp.xy[2:, :150], warp.maps[:, 2:, :150])
+    alone_loss, alone_grad = warped_contrast_loss_and_grad(own, params[2:], weights[2:, :150], *args)
+    assert torch.equal(loss[2:], alone_loss) and torch.equal(grad[2:], alone_grad)
