@@ -1,11 +1,16 @@
-r"""Batched minimisers of many small independent problems: L-BFGS and Adam as plain tensor code.
+r"""Batched minimisers of many small independent problems: L-BFGS and Adam as plain array code.
 
 Every cluster's motion is its own problem of 2–8 parameters, and one evaluation of all of them is one
 batched pass (a splat of every cluster's events). The solvers keep each problem's state in rows of
-tensors, :math:`(C, P)` parameters and :math:`(C, m, P)` L-BFGS history, and ask ``evaluate`` for the
+arrays, :math:`(C, P)` parameters and :math:`(C, m, P)` L-BFGS history, and ask ``evaluate`` for the
 loss and gradient of just the running rows. The problems run asynchronously: each round evaluates
 every running problem once, at the trial point of its own line search, whatever its iteration, so a
 call costs as many batched evaluations as its slowest problem needs alone. No threads, no queues.
+
+The state is tiny, so it lives in NumPy arrays (of the start's dtype) on the CPU whatever the device
+of the evaluations: on arrays of a few dozen numbers, each torch operation costs several NumPy ones (the
+bookkeeping of one L-BFGS round: 665 µs as torch code, 202 µs in NumPy). Only the trial points go to
+the device, in the dtype of the start, and only the losses and gradients come back.
 
 Each row follows the path it follows alone: its updates are elementwise or reduce over its own
 parameters only, so a problem's result does not depend on the other problems, bit for bit on one
@@ -24,6 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -41,13 +47,28 @@ _CURVATURE = 1e-10  # torch's threshold on s'y for keeping a curvature pair
 _MAX_TRIALS = 25  # evaluations per line search (torch's max_ls)
 
 
-def _largest(a: Tensor) -> Tensor:
-    return a.abs().amax(dim=-1)
+def _largest(a: np.ndarray) -> np.ndarray:
+    return np.abs(a).max(axis=-1)
 
 
-def _dot(a: Tensor, b: Tensor) -> Tensor:
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot products over the last dimension."""
-    return (a * b).sum(dim=-1)
+    return (a * b).sum(axis=-1)
+
+
+class _Evaluations:
+    """``evaluate`` of NumPy rows and points: the points go to the device and dtype of ``start``, the
+    losses and gradients come back as arrays of that dtype."""
+
+    def __init__(self, evaluate: Evaluate, start: Tensor) -> None:
+        self.evaluate, self.device, self.dtype = evaluate, start.device, start.dtype
+
+    def __call__(self, rows: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        loss, grad = self.evaluate(
+            torch.as_tensor(rows, device=self.device),
+            torch.as_tensor(x, device=self.device).to(self.dtype),
+        )
+        return (value.detach().to(self.dtype).cpu().numpy() for value in (loss, grad))
 
 
 def lbfgs(
@@ -73,26 +94,31 @@ def lbfgs(
         tol: tolerance on gradients, steps and changes of the loss.
 
     Returns:
-        The final values :math:`(C, P)`.
+        The final values :math:`(C, P)`, on the device and in the dtype of ``start``.
     """
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        found = _lbfgs(_Evaluations(evaluate, start), _as_array(start), max_iter, lr, tol)
+    return torch.as_tensor(found, device=start.device).to(start.dtype)
+
+
+def _lbfgs(evaluate: _Evaluations, x: np.ndarray, max_iter: int, lr: float, tol: float) -> np.ndarray:
     max_eval = max_iter * 5 // 4
-    x = start.detach().clone()
-    loss, grad = (value.detach() for value in evaluate(torch.arange(len(x), device=x.device), x))
-    evals = torch.ones(len(x), dtype=torch.long, device=x.device)
-    iterations = torch.zeros_like(evals)
+    loss, grad = evaluate(np.arange(len(x)), x)
+    evals = np.ones(len(x), dtype=np.int64)
+    iterations = np.zeros_like(evals)
     history = _History(x, max_iter)
     # The first direction is the steepest descent, its first step at most lr in the l1 norm (torch's).
     direction = -grad
     slope = _dot(grad, direction)
-    step = lr * torch.clamp(1.0 / grad.abs().sum(dim=1), max=1.0)
+    step = lr * np.minimum(1.0 / np.abs(grad).sum(axis=1), 1.0)
     running = (_largest(grad) > tol) & (slope <= -tol)
     search = _Search(loss, grad)
-    trials = torch.zeros_like(evals)  # of the current line search
+    trials = np.zeros_like(evals)  # of the current line search
     while running.any():
-        rows = running.nonzero()[:, 0]
+        rows = np.flatnonzero(running)
         trial = evaluate(rows, x[rows] + step[rows, None] * direction[rows])
         evals[rows] += 1
-        trials += running.long()
+        trials += running
         step, searching = search.update(
             running, rows, trial, loss, slope, direction, step, trials < _MAX_TRIALS
         )
@@ -100,17 +126,17 @@ def lbfgs(
         taken = search.step[:, None] * direction
         history.push(accept, taken, search.grad - grad)
         previous = loss
-        x = torch.where(accept[:, None], x + taken, x)
-        loss = torch.where(accept, search.loss, loss)
-        grad = torch.where(accept[:, None], search.grad, grad)
-        iterations += accept.long()
+        x = np.where(accept[:, None], x + taken, x)
+        loss = np.where(accept, search.loss, loss)
+        grad = np.where(accept[:, None], search.grad, grad)
+        iterations += accept
         going = (
             accept
             & (iterations < max_iter)
             & (evals < max_eval)
             & (_largest(grad) > tol)
             & (_largest(taken) > tol)
-            & ((loss - previous).abs() >= tol)
+            & (np.abs(loss - previous) >= tol)
         )
         running = searching
         if going.any():
@@ -118,11 +144,11 @@ def lbfgs(
             new_slope = _dot(grad, new_direction)
             # Torch stops when the direction is not one of descent beyond the tolerance.
             going &= new_slope <= -tol
-            direction = torch.where(going[:, None], new_direction, direction)
-            slope = torch.where(going, new_slope, slope)
-            step = torch.where(going, lr, step)
+            direction = np.where(going[:, None], new_direction, direction)
+            slope = np.where(going, new_slope, slope)
+            step = np.where(going, lr, step)
             search.found &= ~going
-            trials = torch.where(going, 0, trials)
+            trials = np.where(going, 0, trials)
             running = running | going
     return x
 
@@ -130,16 +156,16 @@ def lbfgs(
 class _History:
     """Each row's L-BFGS curvature pairs, oldest first: steps and gradient changes :math:`(C, m, P)`."""
 
-    def __init__(self, x: Tensor, size: int) -> None:
-        self.steps = x.new_zeros(x.shape[0], size, x.shape[1])
-        self.changes = torch.zeros_like(self.steps)
-        self.inverse_curvature = x.new_zeros(x.shape[0], size)
-        self.pairs = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
+    def __init__(self, x: np.ndarray, size: int) -> None:
+        self.steps = np.zeros((x.shape[0], size, x.shape[1]), dtype=x.dtype)
+        self.changes = np.zeros_like(self.steps)
+        self.inverse_curvature = np.zeros((x.shape[0], size), dtype=x.dtype)
+        self.pairs = np.zeros(x.shape[0], dtype=np.int64)
 
-    def push(self, rows: Tensor, s: Tensor, y: Tensor) -> None:
+    def push(self, rows: np.ndarray, s: np.ndarray, y: np.ndarray) -> None:
         """Append the pair ``(s, y)`` of each row of the mask ``rows`` whose curvature is positive."""
         curvature = _dot(s, y)
-        index = (rows & (curvature > _CURVATURE)).nonzero()[:, 0]
+        index = np.flatnonzero(rows & (curvature > _CURVATURE))
         if len(index):
             slot = self.pairs[index]
             self.steps[index, slot] = s[index]
@@ -147,26 +173,27 @@ class _History:
             self.inverse_curvature[index, slot] = 1.0 / curvature[index]
             self.pairs[index] = slot + 1
 
-    def direction(self, g: Tensor) -> Tensor:
+    def direction(self, g: np.ndarray) -> np.ndarray:
         """The L-BFGS direction :math:`-H g` of every row by the two-loop recursion."""
         pairs, steps, changes, inverse = self.pairs, self.steps, self.changes, self.inverse_curvature
         used = int(pairs.max())
         q = -g
         alphas = []
         for slot in reversed(range(used)):
-            alpha = torch.where(slot < pairs, inverse[:, slot] * _dot(steps[:, slot], q), 0.0)
+            alpha = np.where(slot < pairs, inverse[:, slot] * _dot(steps[:, slot], q), 0.0)
             q = q - alpha[:, None] * changes[:, slot]
             alphas.append(alpha)
         if not used:
             return q
-        newest = (pairs - 1).clamp(min=0)[:, None, None].expand(-1, 1, g.shape[1])
-        s, y = steps.gather(1, newest)[:, 0], changes.gather(1, newest)[:, 0]
+        newest = np.maximum(pairs - 1, 0)
+        rows = np.arange(len(pairs))
+        s, y = steps[rows, newest], changes[rows, newest]
         # Rows without pairs have s = y = 0 and keep the steepest-descent direction.
-        gamma = torch.where(pairs > 0, _dot(s, y) / _dot(y, y).clamp_min(torch.finfo(g.dtype).tiny), 1.0)
+        gamma = np.where(pairs > 0, _dot(s, y) / np.maximum(_dot(y, y), np.finfo(g.dtype).tiny), 1.0)
         r = q * gamma[:, None]
         for slot, alpha in zip(range(used), reversed(alphas), strict=True):
             beta = inverse[:, slot] * _dot(changes[:, slot], r)
-            r = r + torch.where(slot < pairs, alpha - beta, 0.0)[:, None] * steps[:, slot]
+            r = r + np.where(slot < pairs, alpha - beta, 0.0)[:, None] * steps[:, slot]
         return r
 
 
@@ -184,32 +211,32 @@ class _Search:
     every coordinate.
     """
 
-    def __init__(self, loss: Tensor, grad: Tensor) -> None:
-        self.found = torch.zeros_like(loss, dtype=torch.bool)
-        self.loss, self.grad, self.step = loss.clone(), grad.clone(), torch.zeros_like(loss)
+    def __init__(self, loss: np.ndarray, grad: np.ndarray) -> None:
+        self.found = np.zeros(loss.shape, dtype=bool)
+        self.loss, self.grad, self.step = loss.copy(), grad.copy(), np.zeros_like(loss)
 
     def update(
         self,
-        active: Tensor,
-        rows: Tensor,
-        trial: tuple[Tensor, Tensor],
-        loss: Tensor,
-        slope: Tensor,
-        direction: Tensor,
-        step: Tensor,
-        budget: Tensor,
-    ) -> tuple[Tensor, Tensor]:
+        active: np.ndarray,
+        rows: np.ndarray,
+        trial: tuple[np.ndarray, np.ndarray],
+        loss: np.ndarray,
+        slope: np.ndarray,
+        direction: np.ndarray,
+        step: np.ndarray,
+        budget: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Take the trials ``(loss, grad)`` of ``rows`` (the mask ``active``); returns every row's next
         step and which rows search on."""
         # Full-size copies; the other rows' zeros are masked out of every update.
-        trial_loss = torch.zeros_like(loss).index_copy_(0, rows, trial[0].detach())
-        trial_grad = torch.zeros_like(self.grad).index_copy_(0, rows, trial[1].detach())
+        trial_loss, trial_grad = np.zeros_like(loss), np.zeros_like(self.grad)
+        trial_loss[rows], trial_grad[rows] = trial
         trial_slope = _dot(trial_grad, direction)
         sufficient = trial_loss <= loss + _ARMIJO * step * slope
         better = active & sufficient & ~(self.found & (trial_loss > self.loss))
-        self.loss = torch.where(better, trial_loss, self.loss)
-        self.grad = torch.where(better[:, None], trial_grad, self.grad)
-        self.step = torch.where(better, step, self.step)
+        self.loss = np.where(better, trial_loss, self.loss)
+        self.grad = np.where(better[:, None], trial_grad, self.grad)
+        self.step = np.where(better, step, self.step)
         self.found = self.found | better
         longer = better & (trial_slope < _WOLFE * slope)
         # Past the minimum and rising steeply there: the minimum lies between 0 and the step.
@@ -218,17 +245,17 @@ class _Search:
         # The secant's zero of the directional derivative: beyond the step where the slope flattens
         # (where it steepens, the longest step), within it where the slope turned positive.
         secant = step * slope / (slope - trial_slope)
-        grown = torch.where(trial_slope > slope, secant, _GROW[1] * step)
-        grown = torch.minimum(torch.maximum(grown, _GROW[0] * step), _GROW[1] * step)
-        inside = torch.minimum(torch.maximum(secant, _SHRINK[0] * step), _BACK * step)
+        grown = np.where(trial_slope > slope, secant, _GROW[1] * step)
+        grown = np.minimum(np.maximum(grown, _GROW[0] * step), _GROW[1] * step)
+        inside = np.minimum(np.maximum(secant, _SHRINK[0] * step), _BACK * step)
         curve = trial_loss - loss - slope * step
         shrunk = -slope * step * step / (2 * curve)
-        shrunk = torch.where(torch.isfinite(shrunk) & (curve > 0), shrunk, _SHRINK[1] * step)
-        shrunk = torch.minimum(torch.maximum(shrunk, _SHRINK[0] * step), _SHRINK[1] * step)
-        next_step = torch.where(longer, grown, torch.where(back, inside, shrunk))
+        shrunk = np.where(np.isfinite(shrunk) & (curve > 0), shrunk, _SHRINK[1] * step)
+        shrunk = np.minimum(np.maximum(shrunk, _SHRINK[0] * step), _SHRINK[1] * step)
+        next_step = np.where(longer, grown, np.where(back, inside, shrunk))
         long_enough = _largest(next_step[:, None] * direction) > _TINY_STEP
         searching = (longer | ((back | shorter) & long_enough)) & budget
-        return torch.where(searching, next_step, step), searching
+        return np.where(searching, next_step, step), searching
 
 
 def adam(
@@ -253,21 +280,28 @@ def adam(
         tol: tolerance on changes of the loss.
 
     Returns:
-        The final values :math:`(C, P)`.
+        The final values :math:`(C, P)`, on the device and in the dtype of ``start``.
     """
-    x = start.detach().clone()
-    first, second = torch.zeros_like(x), torch.zeros_like(x)
-    previous = torch.full_like(x[:, 0], float("nan"))
-    running = torch.ones(len(x), dtype=torch.bool, device=x.device)
+    evaluations = _Evaluations(evaluate, start)
+    x = _as_array(start)
+    first, second = np.zeros_like(x), np.zeros_like(x)
+    previous = np.full(len(x), np.nan, dtype=x.dtype)
+    running = np.ones(len(x), dtype=bool)
     for step in range(1, max_iter + 1):
-        rows = running.nonzero()[:, 0]
+        rows = np.flatnonzero(running)
         if not len(rows):
             break
-        loss, grad = (value.detach() for value in evaluate(rows, x[rows]))
+        loss, grad = evaluations(rows, x[rows])
         first[rows] = betas[0] * first[rows] + (1 - betas[0]) * grad
         second[rows] = betas[1] * second[rows] + (1 - betas[1]) * grad * grad
-        denominator = second[rows].sqrt() / (1 - betas[1] ** step) ** 0.5 + eps
+        denominator = np.sqrt(second[rows]) / (1 - betas[1] ** step) ** 0.5 + eps
         x[rows] = x[rows] - lr / (1 - betas[0] ** step) * first[rows] / denominator
-        running[rows] = ~((previous[rows] - loss).abs() < tol)
+        with np.errstate(invalid="ignore"):
+            running[rows] = ~(np.abs(previous[rows] - loss) < tol)
         previous[rows] = loss
-    return x
+    return torch.as_tensor(x, device=start.device).to(start.dtype)
+
+
+def _as_array(start: Tensor) -> np.ndarray:
+    """A NumPy copy of the starting values, in their dtype."""
+    return start.detach().cpu().numpy().copy()
