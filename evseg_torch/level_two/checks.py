@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import math
 
+import torch
 from torch import Tensor
 
-from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
+from evseg_torch.errors import ConfigError, EventFormatError, ModelError, ShapeError
 from evseg_torch.events import EventBatch
+from evseg_torch.motion import MotionModel
 
 
 def check_points(xy: Tensor, name: str) -> None:
@@ -76,3 +78,31 @@ def check_events(events) -> EventBatch:
             f"{tuple(events.t.shape)}, {tuple(events.p.shape)}"
         )
     return events
+
+
+def check_params(params, events: EventBatch, model: MotionModel) -> Tensor:
+    """A pool of finite models :math:`(K, P)`, K >= 1, for ``model``: a detached copy on the events'
+    device and in their dtype."""
+    if not isinstance(params, Tensor):
+        raise ShapeError(f"init_params must be a torch.Tensor (K, P), got {type(params).__name__}")
+    if params.ndim != 2 or params.shape[0] == 0 or params.shape[1] != model.n_params:
+        raise ShapeError(
+            f"init_params must be (K, {model.n_params}) with K >= 1 for the {model.name} "
+            f"model, got {tuple(params.shape)}"
+        )
+    if not torch.isfinite(params).all():
+        raise ModelError("init_params hold NaN or inf: every model's parameters must be finite")
+    return params.detach().to(device=events.xy.device, dtype=events.xy.dtype).clone()
+
+
+def check_labels(labels, events: EventBatch, params: Tensor) -> Tensor:
+    """Integer labels :math:`(N,)` of the events, each indexing one of the models ``params``, as int64
+    on the events' device."""
+    labels = torch.as_tensor(labels, device=events.xy.device)
+    if labels.shape != (len(events),) or labels.dtype.is_floating_point or labels.dtype == torch.bool:
+        raise ShapeError(
+            f"labels must be integers of shape ({len(events)},), got {labels.dtype} {tuple(labels.shape)}"
+        )
+    if len(labels) and (labels.min() < 0 or labels.max() >= params.shape[0]):
+        raise ShapeError(f"labels must lie in [0, {params.shape[0]}) to index the {params.shape[0]} models")
+    return labels.long()

@@ -31,7 +31,6 @@ measurements: ``docs/level_two.md``.
 from __future__ import annotations
 
 import dataclasses
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
@@ -40,18 +39,18 @@ import torch
 from torch import Tensor, nn
 
 from evseg_torch.config import LevelTwoConfig, replace_settings
-from evseg_torch.errors import EventFormatError, ModelError, ShapeError
+from evseg_torch.errors import EventFormatError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one, batch_windows
-from evseg_torch.graphcut.alpha_expansion import alpha_expansion, potts_graph
-from evseg_torch.level_two.checks import check_events
+from evseg_torch.graphcut.alpha_expansion import alpha_expansion
+from evseg_torch.level_two.checks import check_events, check_labels
 from evseg_torch.level_two.cmax import ContrastMaximization
 from evseg_torch.level_two.contrast import contrast_loss
 from evseg_torch.level_two.data_term import DataCost
 from evseg_torch.level_two.discovery import Discovery
-from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.iwe import splat_events, warp_events
 from evseg_torch.level_two.objects import ObjectPhase
 from evseg_torch.level_two.window_state import (
+    StageClock,
     WindowState,
     changed_fraction,
     chunks,
@@ -60,7 +59,7 @@ from evseg_torch.level_two.window_state import (
     padded_rows,
     renumber_by_size,
     select_windows,
-    site_majority,
+    start_window,
     subsample,
 )
 from evseg_torch.motion import MotionModel, make_motion_model
@@ -112,25 +111,6 @@ class LevelTwoResult:
     soft_assignments: Tensor
     energy_history: tuple[float, ...]
     timings_ms: dict[str, float] = field(default_factory=dict, compare=False)
-
-
-_STAGES = ("graph", "data_term", "labelling", "refit", "discovery", "images")
-
-
-class _Clock:
-    """Wall-clock milliseconds per stage and window; a stage run for several windows at once is shared
-    evenly by them, so the windows' timings add up to the batch's."""
-
-    def __init__(self, n_windows: int) -> None:
-        self.timings = [dict.fromkeys(_STAGES, 0.0) for _ in range(n_windows)]
-        self._last = time.perf_counter()
-
-    def lap(self, stage: str, windows: Sequence[WindowState]) -> None:
-        now = time.perf_counter()
-        share = 1e3 * (now - self._last) / len(windows)
-        for window in windows:
-            self.timings[window.index][stage] += share
-        self._last = now
 
 
 class GraphCutContrastSegmenter(nn.Module):
@@ -295,7 +275,7 @@ class GraphCutContrastSegmenter(nn.Module):
         weights = (
             None
             if labels is None
-            else memberships(self._check_labels(labels, events, params), params.shape[0], params.dtype)
+            else memberships(check_labels(labels, events, params), params.shape[0], params.dtype)
         )
         return contrast_loss(
             self.model,
@@ -331,10 +311,12 @@ class GraphCutContrastSegmenter(nn.Module):
         self, batch: EventBatch, windows: list[EventBatch], pools: list, init_labels: list
     ) -> list[LevelTwoResult]:
         """The block-coordinate descent of every window of ``batch``, in lockstep (module docstring)."""
-        clock = _Clock(len(windows))
+        clock = StageClock(len(windows))
         states = []
         for index, (events, pool, labels) in enumerate(zip(windows, pools, init_labels, strict=True)):
-            states.append(self._start(index, events, pool, labels))
+            states.append(
+                start_window(index, events, pool, labels, self.model, self.sensor_size, self.config)
+            )
             clock.lap("graph", states[-1:])
         site_index = padded_rows([state.sites for state in states], batch.t.shape[1], device=batch.xy.device)
         active = states
@@ -368,46 +350,6 @@ class GraphCutContrastSegmenter(nn.Module):
             replace(result, timings_ms=timings)
             for result, timings in zip(results, clock.timings, strict=True)
         ]
-
-    def _start(self, index: int, events: EventBatch, init_params: Tensor, init_labels) -> WindowState:
-        """A window's graph and starting point."""
-        params = self._check_params(init_params, events)
-        labels = (
-            None if init_labels is None else self._check_labels(init_labels, events, params).cpu().numpy()
-        )
-        if self.config.site_time_slices is None:
-            edges, weights = event_graph(
-                events, sensor_size=self.sensor_size, temporal_edges=self.config.temporal_edges
-            )
-            sites = np.arange(len(events))
-        else:
-            sites, edges, weights = site_graph(
-                events,
-                sensor_size=self.sensor_size,
-                time_slices=self.config.site_time_slices,
-                temporal_edges=self.config.temporal_edges,
-            )
-        n_sites = int(sites.max()) + 1
-        # Sites are numbered in row-major pixel order, already local; events are in time order.
-        graph = potts_graph(edges, weights, n_nodes=n_sites, reorder=self.config.site_time_slices is None)
-        node_labels = labels
-        if labels is not None and self.config.site_time_slices is not None:
-            node_labels = site_majority(labels, sites, n_sites)
-        return WindowState(
-            index=index,
-            events=events,
-            xy=events.xy.detach().cpu().numpy().astype(np.int64),
-            polarity=events.p.detach().cpu().numpy(),
-            graph=graph,
-            sites=sites,
-            n_sites=n_sites,
-            params=params,
-            labels=labels,
-            node_labels=node_labels,
-            rounds_left=self.config.n_iter_segmentation,
-            discoveries_left=self.config.discovery_rounds,
-            splits_left=self.config.object_splits,
-        )
 
     def _data_costs(self, batch: EventBatch, states: list[WindowState], site_index: Tensor) -> None:
         """The windows' data costs, batched, and the graph cuts' cost matrices, copied to the CPU at once.
@@ -525,28 +467,3 @@ class GraphCutContrastSegmenter(nn.Module):
         if self.config.label_cost_events is None:
             return self.config.lambda_label
         return self.config.lambda_label * max(1.0, n_events / self.config.label_cost_events)
-
-    def _check_params(self, params, events: EventBatch) -> Tensor:
-        if not isinstance(params, Tensor):
-            raise ShapeError(f"init_params must be a torch.Tensor (K, P), got {type(params).__name__}")
-        if params.ndim != 2 or params.shape[0] == 0 or params.shape[1] != self.model.n_params:
-            raise ShapeError(
-                f"init_params must be (K, {self.model.n_params}) with K >= 1 for the {self.model.name} "
-                f"model, got {tuple(params.shape)}"
-            )
-        if not torch.isfinite(params).all():
-            raise ModelError("init_params hold NaN or inf: every model's parameters must be finite")
-        return params.detach().to(device=events.xy.device, dtype=events.xy.dtype).clone()
-
-    @staticmethod
-    def _check_labels(labels, events: EventBatch, params: Tensor) -> Tensor:
-        labels = torch.as_tensor(labels, device=events.xy.device)
-        if labels.shape != (len(events),) or labels.dtype.is_floating_point or labels.dtype == torch.bool:
-            raise ShapeError(
-                f"labels must be integers of shape ({len(events)},), got {labels.dtype} {tuple(labels.shape)}"
-            )
-        if len(labels) and (labels.min() < 0 or labels.max() >= params.shape[0]):
-            raise ShapeError(
-                f"labels must lie in [0, {params.shape[0]}) to index the {params.shape[0]} models"
-            )
-        return labels.long()

@@ -1,13 +1,15 @@
 """One window's state in level two's block-coordinate descent, and the helpers that batch windows.
 
-:class:`WindowState` is what the segmenter (:mod:`~evseg_torch.level_two.segmenter`), discovery
-(:mod:`~evseg_torch.level_two.discovery`) and the object phase (:mod:`~evseg_torch.level_two.objects`)
-step, round by round; the functions below renumber labels, build memberships and pad the windows of a
-batch into shared tensors.
+:class:`WindowState` (started by :func:`start_window`) is what the segmenter
+(:mod:`~evseg_torch.level_two.segmenter`), discovery (:mod:`~evseg_torch.level_two.discovery`) and the
+object phase (:mod:`~evseg_torch.level_two.objects`) step, round by round; :class:`StageClock` times the
+stages; the functions below renumber labels, build memberships and pad the windows of a batch into shared
+tensors.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -15,8 +17,12 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from evseg_torch.config import LevelTwoConfig
 from evseg_torch.events import EventBatch
-from evseg_torch.graphcut.alpha_expansion import PottsGraph
+from evseg_torch.graphcut.alpha_expansion import PottsGraph, potts_graph
+from evseg_torch.level_two.checks import check_labels, check_params
+from evseg_torch.level_two.graph import event_graph, site_graph
+from evseg_torch.motion import MotionModel
 
 
 @dataclass
@@ -54,6 +60,71 @@ class WindowState:
     node_cost: np.ndarray | None = None
     keep: np.ndarray | None = None
     step: str = "label"
+
+
+STAGES = ("graph", "data_term", "labelling", "refit", "discovery", "images")
+"""The stages of level two that :class:`StageClock` times."""
+
+
+class StageClock:
+    """Wall-clock milliseconds per stage and window; a stage run for several windows at once is shared
+    evenly by them, so the windows' timings add up to the batch's."""
+
+    def __init__(self, n_windows: int) -> None:
+        self.timings = [dict.fromkeys(STAGES, 0.0) for _ in range(n_windows)]
+        self._last = time.perf_counter()
+
+    def lap(self, stage: str, windows: Sequence[WindowState]) -> None:
+        now = time.perf_counter()
+        share = 1e3 * (now - self._last) / len(windows)
+        for window in windows:
+            self.timings[window.index][stage] += share
+        self._last = now
+
+
+def start_window(
+    index: int,
+    events: EventBatch,
+    init_params: Tensor,
+    init_labels,
+    model: MotionModel,
+    sensor_size: tuple[int, int],
+    config: LevelTwoConfig,
+) -> WindowState:
+    """A window's graph (:mod:`~evseg_torch.level_two.graph`) and starting point, its inputs checked."""
+    params = check_params(init_params, events, model)
+    labels = None if init_labels is None else check_labels(init_labels, events, params).cpu().numpy()
+    if config.site_time_slices is None:
+        edges, weights = event_graph(events, sensor_size=sensor_size, temporal_edges=config.temporal_edges)
+        sites = np.arange(len(events))
+    else:
+        sites, edges, weights = site_graph(
+            events,
+            sensor_size=sensor_size,
+            time_slices=config.site_time_slices,
+            temporal_edges=config.temporal_edges,
+        )
+    n_sites = int(sites.max()) + 1
+    # Sites are numbered in row-major pixel order, already local; events are in time order.
+    graph = potts_graph(edges, weights, n_nodes=n_sites, reorder=config.site_time_slices is None)
+    node_labels = labels
+    if labels is not None and config.site_time_slices is not None:
+        node_labels = site_majority(labels, sites, n_sites)
+    return WindowState(
+        index=index,
+        events=events,
+        xy=events.xy.detach().cpu().numpy().astype(np.int64),
+        polarity=events.p.detach().cpu().numpy(),
+        graph=graph,
+        sites=sites,
+        n_sites=n_sites,
+        params=params,
+        labels=labels,
+        node_labels=node_labels,
+        rounds_left=config.n_iter_segmentation,
+        discoveries_left=config.discovery_rounds,
+        splits_left=config.object_splits,
+    )
 
 
 def renumber_by_size(labels: np.ndarray, n_labels: int) -> tuple[np.ndarray, np.ndarray]:
