@@ -126,16 +126,13 @@ def splat_events(
     check_points(xy, "xy")
     if not xy.is_floating_point():
         raise ShapeError(f"xy must be a floating-point tensor, got {xy.dtype}")
-    if polarity is not None:
-        if not isinstance(polarity, Tensor) or polarity.ndim == 0 or polarity.shape[-1] != xy.shape[-2]:
-            raise ShapeError(
-                f"polarity must be a tensor (..., {xy.shape[-2]}) to match xy {tuple(xy.shape)}, got "
-                f"{tuple(polarity.shape) if isinstance(polarity, Tensor) else type(polarity).__name__}"
-            )
-        positive = (polarity > 0).to(xy.dtype)
-        split = torch.stack([positive, 1 - positive], dim=-2)
-        weights = split if weights is None else weights.unsqueeze(-2) * split
-        xy = xy.unsqueeze(-3)
+    if polarity is not None and (
+        not isinstance(polarity, Tensor) or polarity.ndim == 0 or polarity.shape[-1] != xy.shape[-2]
+    ):
+        raise ShapeError(
+            f"polarity must be a tensor (..., {xy.shape[-2]}) to match xy {tuple(xy.shape)}, got "
+            f"{tuple(polarity.shape) if isinstance(polarity, Tensor) else type(polarity).__name__}"
+        )
     batch_shape = xy.shape[:-2]
     if weights is not None:
         if weights.ndim == 0 or weights.shape[-1] != xy.shape[-2]:
@@ -149,10 +146,21 @@ def splat_events(
             raise ShapeError(
                 f"weights {tuple(weights.shape)} do not broadcast against xy {tuple(xy.shape)}"
             ) from None
+    if polarity is not None:
+        batch_shape = torch.broadcast_shapes(batch_shape, polarity.shape[:-1])
     check_blur(sigma, truncate)
 
     corner, taps = bilinear_taps(xy, weights, height, width)
-    image, _ = scatter_taps(corner, taps, (*batch_shape, xy.shape[-2]), height, width)
+    shape = (*batch_shape, xy.shape[-2])
+    if polarity is None:
+        image, _ = scatter_taps(corner, taps, shape, height, width)
+    else:
+        # Each event votes into its own sign's image only: image 2 i of leading index i holds the
+        # positive events, image 2 i + 1 the others (the same sums as voting zeros into the other).
+        own = 2 * torch.arange(math.prod(batch_shape), device=xy.device).view(*batch_shape, 1)
+        sign = own + (polarity <= 0).long()
+        image, _ = scatter_taps(corner, taps, shape, height, width, sign, 2 * math.prod(batch_shape))
+        image = image.view(*batch_shape, 2, height, width)
     if extent is not None:
         inside = extent_mask(extent, (height, width))
         image = image * (inside if polarity is None else inside.unsqueeze(-3))
@@ -300,22 +308,33 @@ class ImageOfWarpedEvents(nn.Module):
 
 
 def scatter_taps(
-    corner: Tensor, taps: list[tuple[int, Tensor]], shape: tuple[int, ...], height: int, width: int
+    corner: Tensor,
+    taps: list[tuple[int, Tensor]],
+    shape: tuple[int, ...],
+    height: int,
+    width: int,
+    image_index: Tensor | None = None,
+    n_images: int | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Bilinear votes into images: the taps of :func:`bilinear_taps`, broadcast to ``shape``
     :math:`(..., N)`, added into one image per leading index, :math:`(..., H, W)`; and each position's
     top-left tap as an index into those images flattened with their 2-pixel padding, :math:`(..., N)`
-    (to read an image of the same layout back at the taps)."""
+    (to read an image of the same layout back at the taps).
+
+    With ``image_index`` (int64, broadcast to ``shape``) and ``n_images``, each position votes into its
+    own image of ``n_images`` instead, returned :math:`(n_{images}, H, W)`."""
     batch_shape = shape[:-1]
-    n_images, padded_size = math.prod(batch_shape), (height + 4) * (width + 4)
-    offsets = torch.arange(n_images, device=corner.device).view(*batch_shape, 1) * padded_size
-    index = corner.expand(shape) + offsets
+    padded_size = (height + 4) * (width + 4)
+    out_shape = (n_images,) if image_index is not None else batch_shape
+    if image_index is None:
+        image_index = torch.arange(math.prod(batch_shape), device=corner.device).view(*batch_shape, 1)
+    index = corner.expand(shape) + image_index * padded_size
     flat = index.reshape(-1)
     # One scatter per tap: stacking the four taps into one index costs more than the scatters.
-    image = taps[0][1].new_zeros(n_images * padded_size)
+    image = taps[0][1].new_zeros(math.prod(out_shape) * padded_size)
     for step, tap in taps:
         image = image.index_add_(0, flat + step, tap.expand(shape).reshape(-1))
-    return image.view(*batch_shape, height + 4, width + 4)[..., 2 : height + 2, 2 : width + 2], index
+    return image.view(*out_shape, height + 4, width + 4)[..., 2 : height + 2, 2 : width + 2], index
 
 
 def bilinear_taps(
