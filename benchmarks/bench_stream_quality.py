@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from evseg_torch.cli import _seed_range
+from evseg_torch.errors import ConfigError
 from evseg_torch.evaluation.labelled import score_labelling
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic_families import make_family_scene
@@ -27,7 +28,11 @@ def main() -> None:
     torch.set_num_threads(1)
     scores = {"stream": [], "cold": []}
     for seed in args.seeds:
-        scene = make_family_scene("hard", seed, duration=args.duration_ms * 1e-3)
+        try:
+            scene = make_family_scene("hard", seed, duration=args.duration_ms * 1e-3)
+        except ConfigError as error:
+            print(f"seed {seed}: skipped, {error}")
+            continue
         segmenter = CascadedSegmenter(scene.sensor_size)
         xy = np.column_stack([scene.events["x"], scene.events["y"]])
         for streamed in segmenter.stream(scene.events, window_ms=30.0):
@@ -43,6 +48,8 @@ def main() -> None:
                 if score.n_objects:
                     scores[mode].append(score)
     print(f"{len(scores['stream'])} windows of {len(args.seeds)} scenes")
+    if not scores["stream"]:
+        raise SystemExit("no window with a moving object to score")
     for mode, rows in scores.items():
         means = {name: np.mean([getattr(s, name) for s in rows]) for name in ("accuracy", "iou", "detection")}
         print(
