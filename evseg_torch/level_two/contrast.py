@@ -277,7 +277,7 @@ def warped_contrast_loss_and_grad(
             # d votes / d area = weights γ a^(γ-1) where the area is above the clamp, 0 below it.
             slope = torch.where(area >= _MIN_AREA, collapse_weight * powered / clamped, 0.0)
             grad_area = (grad_votes * weights * slope)[..., None] * area_gradient(moved)
-            grad_moved = torch.cat([grad_moved, grad_area[..., 2:]], dim=-1)
+            grad_moved = torch.cat([grad_moved, grad_area], dim=-1)
         return seed * variance, warp.params_gradient(grad_moved)
 
 

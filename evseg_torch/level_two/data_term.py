@@ -307,15 +307,14 @@ def _quantile(values: Tensor, selected: Tensor, q: float) -> Tensor:
     flat = torch.where(selected, values.detach(), torch.inf).flatten(1)
     counts = selected.flatten(1).sum(dim=1)
     ranks = (counts.double() * q).round().clamp_min(1).long()
+    # Each window's rank becomes the largest by as many -inf beside its values: one kthvalue for all. The
+    # padding is only as wide as that (none for one window) and the top rank needs.
     top = int(ranks.max())
-    if len(flat) == 1:
-        kth = flat.kthvalue(top, dim=1).values
-    else:
-        # Each window's rank becomes the largest by as many -inf in front of its values: one kthvalue for
-        # all.
-        lead = torch.arange(top, device=flat.device) < (top - ranks)[:, None]
-        lead = torch.where(lead, -torch.inf, torch.inf).to(flat.dtype)
-        kth = torch.cat([flat, lead], dim=1).kthvalue(top, dim=1).values
+    width = max(top - int(ranks.min()), top - flat.shape[1])
+    if width:
+        lead = torch.arange(width, device=flat.device) < (top - ranks)[:, None]
+        flat = torch.cat([flat, torch.where(lead, -torch.inf, torch.inf).to(flat.dtype)], dim=1)
+    kth = flat.kthvalue(top, dim=1).values
     return torch.where(counts > 0, kth, torch.finfo(flat.dtype).tiny)
 
 

@@ -53,10 +53,6 @@ class LinearWarp(NamedTuple):
             maps += [model.jacobian(events.xy + e) - jacobian for e in unit]
         return cls(events.xy, (t * torch.cat(maps, dim=-2)).movedim(-1, 0).contiguous())
 
-    @property
-    def with_area(self) -> bool:
-        return self.maps.shape[-1] == 6
-
     def moved(self, params: Tensor) -> Tensor:
         """Each event's displacement and, with the area element, the changes of its one-pixel steps,
         :math:`(..., N, C)` for parameters :math:`(..., P)` (class docstring)."""
@@ -94,11 +90,10 @@ def area_from(moved: Tensor) -> Tensor:
 
 
 def area_gradient(moved: Tensor) -> Tensor:
-    """The derivative of :func:`area_from` in each channel of ``moved``, :math:`(..., N, 6)` (zero in the
-    displacement's)."""
+    """The derivative of :func:`area_from` in the step channels (2–5) of ``moved``, :math:`(..., N, 4)`
+    (the displacement's channels do not change the area)."""
     dx, dy = moved[..., 2:4], moved[..., 4:6]
-    zero = torch.zeros_like(dx[..., 0])
-    return torch.stack([zero, zero, dy[..., 1] - 1, -dy[..., 0], -dx[..., 1], dx[..., 0] - 1], dim=-1)
+    return torch.stack([dy[..., 1] - 1, -dy[..., 0], -dx[..., 1], dx[..., 0] - 1], dim=-1)
 
 
 def _apply(operator: Tensor, params: Tensor) -> Tensor:

@@ -57,8 +57,8 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 class _Evaluations:
-    """``evaluate`` of NumPy rows and points: the points go to the device and dtype of ``start``, the
-    losses and gradients come back as arrays of that dtype."""
+    """``evaluate`` of NumPy rows and points (in the dtype of ``start``): the points go to its device,
+    the losses and gradients come back as arrays of its dtype."""
 
     def __init__(self, evaluate: Evaluate, start: Tensor) -> None:
         self.evaluate, self.device, self.dtype = evaluate, start.device, start.dtype
@@ -66,7 +66,7 @@ class _Evaluations:
     def __call__(self, rows: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         loss, grad = self.evaluate(
             torch.as_tensor(rows, device=self.device),
-            torch.as_tensor(x, device=self.device).to(self.dtype),
+            torch.as_tensor(x, device=self.device),
         )
         return (value.detach().to(self.dtype).cpu().numpy() for value in (loss, grad))
 
@@ -98,7 +98,7 @@ def lbfgs(
     """
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         found = _lbfgs(_Evaluations(evaluate, start), _as_array(start), max_iter, lr, tol)
-    return torch.as_tensor(found, device=start.device).to(start.dtype)
+    return torch.as_tensor(found, device=start.device)
 
 
 def _lbfgs(evaluate: _Evaluations, x: np.ndarray, max_iter: int, lr: float, tol: float) -> np.ndarray:
@@ -299,7 +299,7 @@ def adam(
         with np.errstate(invalid="ignore"):
             running[rows] = ~(np.abs(previous[rows] - loss) < tol)
         previous[rows] = loss
-    return torch.as_tensor(x, device=start.device).to(start.dtype)
+    return torch.as_tensor(x, device=start.device)
 
 
 def _as_array(start: Tensor) -> np.ndarray:

@@ -187,6 +187,12 @@ class TestDataCost:
         with pytest.raises(ConfigError, match="normalization"):
             data_cost(model, events, pool, normalization="max")
 
+    @pytest.mark.parametrize("normalization", NORMALIZATIONS)
+    def test_empty_window(self, normalization):
+        events = EventBatch(torch.zeros(0, 2), torch.zeros(0), torch.zeros(0))
+        cost = data_cost(Translation((8, 8)), events, torch.zeros(2, 2), normalization=normalization)
+        assert cost.shape == (0, 2)
+
     def test_single_pixel_is_free(self):
         events = EventBatch(torch.full((10, 2), 3.0), torch.linspace(0, 0.01, 10), torch.ones(10))
         cost = data_cost(Translation((8, 8)), events, torch.zeros(1, 2))
