@@ -21,8 +21,6 @@ import numpy as np
 
 from evseg_torch.errors import ReaderError
 
-WHAT = "AEDAT 2.0 file"
-
 SENSOR_SIZE = (128, 128)
 
 _RECORD = np.dtype([("address", ">i4"), ("t", ">i4")])

@@ -16,8 +16,6 @@ import numpy as np
 from evseg_torch.errors import ReaderError
 from evseg_torch.io.packets import concatenate, regroup
 
-WHAT = "AEDAT 4 file"
-
 
 def read(path: Path) -> np.ndarray:
     """All events of the first event stream, as one structured array."""

@@ -26,6 +26,7 @@ the formats that take them; giving one to another format is a :class:`ConfigErro
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import NamedTuple
@@ -34,35 +35,55 @@ import numpy as np
 
 from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
 from evseg_torch.events import as_events, check_sensor_size, infer_sensor_size
-from evseg_torch.io import aedat2, aedat4, evimo2, hdf5, numpy_files, prophesee_raw, rosbag, text
+from evseg_torch.io.evimo2 import WHAT as EVIMO2_WHAT
+from evseg_torch.io.evimo2 import is_sequence as is_evimo2_sequence
 from evseg_torch.io.guard import existing_file, reading
+from evseg_torch.io.numpy_files import WHAT_NPY, WHAT_NPZ
 
 
 class _Format(NamedTuple):
+    """A reader: its module of :mod:`evseg_torch.io`, imported on first use, so that ``import evseg_torch``
+    needs none of the optional packages (``needs``) that some readers use."""
+
     what: str
-    read: Callable[..., np.ndarray]
-    chunks: Callable[..., Iterator[np.ndarray]]
-    sensor_size: Callable[..., tuple[int, int] | None]
+    module: str
+    needs: str | None = None
     options: tuple[str, ...] = ()
+    read: str = "read"
+    chunks: str = "chunks"
+    sensor_size: str = "sensor_size"
+
+    def function(self, name: str) -> Callable:
+        """The reader's function ``name`` (``"read"``, ``"chunks"`` or ``"sensor_size"``)."""
+        try:
+            module = importlib.import_module(f"evseg_torch.io.{self.module}")
+        except ModuleNotFoundError as err:
+            if self.needs is None or (err.name or "").split(".")[0] != self.needs:
+                raise
+            raise ReaderError(
+                f"this {self.what} needs the optional package {self.needs!r} to be read: "
+                "pip install 'evseg-torch[io]'"
+            ) from None
+        return getattr(module, getattr(self, name))
 
 
-_HDF5 = _Format(hdf5.WHAT, hdf5.read, hdf5.chunks, hdf5.sensor_size)
-_ROSBAG = _Format(rosbag.WHAT, rosbag.read, rosbag.chunks, rosbag.sensor_size, ("topic",))
-_PROPHESEE = _Format(prophesee_raw.WHAT, prophesee_raw.read, prophesee_raw.chunks, prophesee_raw.sensor_size)
-_EVIMO2 = _Format(evimo2.WHAT, evimo2.read, evimo2.chunks, evimo2.sensor_size)
+_HDF5 = _Format("HDF5 events file", "hdf5", "h5py")
+_ROSBAG = _Format("ROS bag", "rosbag", "rosbags", ("topic",))
+_PROPHESEE = _Format("Prophesee RAW/DAT file", "prophesee_raw", "expelliarmus")
+_EVIMO2 = _Format(EVIMO2_WHAT, "evimo2")
 
 _FORMATS = {
-    ".txt": _Format(text.WHAT, text.read, text.chunks, text.sensor_size),
+    ".txt": _Format("text events file", "text"),
     ".npy": _Format(
-        numpy_files.WHAT_NPY, numpy_files.read_npy, numpy_files.chunks_npy, numpy_files.sensor_size_npy
+        WHAT_NPY, "numpy_files", read="read_npy", chunks="chunks_npy", sensor_size="sensor_size_npy"
     ),
     ".npz": _Format(
-        numpy_files.WHAT_NPZ, numpy_files.read_npz, numpy_files.chunks_npz, numpy_files.sensor_size_npz
+        WHAT_NPZ, "numpy_files", read="read_npz", chunks="chunks_npz", sensor_size="sensor_size_npz"
     ),
     ".h5": _HDF5,
     ".hdf5": _HDF5,
-    ".aedat4": _Format(aedat4.WHAT, aedat4.read, aedat4.chunks, aedat4.sensor_size),
-    ".aedat": _Format(aedat2.WHAT, aedat2.read, aedat2.chunks, aedat2.sensor_size),
+    ".aedat4": _Format("AEDAT 4 file", "aedat4", "aedat"),
+    ".aedat": _Format("AEDAT 2.0 file", "aedat2"),
     ".bag": _ROSBAG,
     ".raw": _PROPHESEE,
     ".dat": _PROPHESEE,
@@ -100,8 +121,8 @@ def load_events(path, *, sensor_size: tuple[int, int] | None = None, topic: str 
     path, fmt = _resolve(path)
     options = _options(path, fmt, topic=topic)
     with reading(path, fmt.what):
-        size = sensor_size if sensor_size is not None else fmt.sensor_size(path, **options)
-        return as_events(fmt.read(path, **options), size)
+        size = sensor_size if sensor_size is not None else fmt.function("sensor_size")(path, **options)
+        return as_events(fmt.function("read")(path, **options), size)
 
 
 def iter_event_chunks(
@@ -143,9 +164,9 @@ def _validated_chunks(
     path: Path, fmt: _Format, chunk_size: int, sensor_size: tuple[int, int] | None, options: dict
 ) -> Iterator[np.ndarray]:
     with reading(path, fmt.what):
-        size = sensor_size if sensor_size is not None else fmt.sensor_size(path, **options)
+        size = sensor_size if sensor_size is not None else fmt.function("sensor_size")(path, **options)
         start, last_t = 0, None
-        for raw in fmt.chunks(path, chunk_size, **options):
+        for raw in fmt.function("chunks")(path, chunk_size, **options):
             try:
                 events = as_events(raw, size)
             except EventFormatError as err:
@@ -169,7 +190,7 @@ def read_sensor_size(path, *, topic: str | None = None) -> tuple[int, int] | Non
     path, fmt = _resolve(path)
     options = _options(path, fmt, topic=topic)
     with reading(path, fmt.what):
-        size = fmt.sensor_size(path, **options)
+        size = fmt.function("sensor_size")(path, **options)
     if size is None:
         return None
     try:
@@ -237,9 +258,9 @@ def reader_for(path) -> str:
 def _resolve(path) -> tuple[Path, _Format]:
     path = Path(path)
     if path.is_dir():
-        if evimo2.is_sequence(path):
+        if is_evimo2_sequence(path):
             return path, _EVIMO2
-        if rosbag.is_ros2_bag(path):
+        if (path / "metadata.yaml").is_file():  # a ROS 2 bag
             return path, _ROSBAG
         raise ReaderError(
             f"{path}: a folder of no known layout; supported folders: {'; '.join(SUPPORTED_FOLDERS)}"

@@ -28,7 +28,6 @@ from evseg_torch.errors import ReaderError
 with contextlib.suppress(ImportError):
     import hdf5plugin  # noqa: F401  (registers the Blosc/Zstd filters that DSEC files use)
 
-WHAT = "HDF5 events file"
 
 _EVENT_UTILS = ("xs", "ys", "ts", "ps")
 _DSEC = ("x", "y", "t", "p")

@@ -29,8 +29,6 @@ from expelliarmus import Wizard
 from evseg_torch.errors import ReaderError
 from evseg_torch.io.packets import regroup
 
-WHAT = "Prophesee RAW/DAT file"
-
 _MAX_HEADER_LINE = 4096
 _DECODER_BLOCK = 65_536  # events per decoder call when streaming; regrouped to the caller's chunk size
 _EVT_VERSIONS = {"2.0": "evt2", "3.0": "evt3"}

@@ -33,8 +33,6 @@ from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typest
 from evseg_torch.errors import ConfigError, ReaderError
 from evseg_torch.io.packets import concatenate, regroup
 
-WHAT = "ROS bag"
-
 EVENT_ARRAY_TYPES = ("dvs_msgs/msg/EventArray", "prophesee_event_msgs/msg/EventArray")
 
 # The .msg definitions of rpg_dvs_ros and prophesee_ros_wrapper (both packages define the same two).
@@ -51,11 +49,6 @@ _ROSBAGS_ERRORS = (
 )
 _ROW = np.dtype([("sec", np.int64), ("nanosec", np.int64), ("x", np.int32), ("y", np.int32), ("p", np.uint8)])
 _EVENTS = np.dtype([("t", np.int64), ("x", np.int32), ("y", np.int32), ("p", np.uint8)])
-
-
-def is_ros2_bag(folder: Path) -> bool:
-    """Whether a folder is a ROS 2 bag (it holds ``metadata.yaml``)."""
-    return (folder / "metadata.yaml").is_file()
 
 
 def read(path: Path, topic: str | None = None) -> np.ndarray:

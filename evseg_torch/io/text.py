@@ -20,8 +20,6 @@ import numpy as np
 
 from evseg_torch.errors import ReaderError
 
-WHAT = "text events file"
-
 _COLUMNS = 4
 
 

@@ -1,3 +1,6 @@
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -131,3 +134,39 @@ class TestErrors:
         with pytest.raises(EventFormatError, match="outside the sensor"):
             list(iter_event_chunks(path, 100))
         assert len(load_events(path, sensor_size=(HEIGHT, WIDTH))) == len(events)
+
+
+_WITHOUT_OPTIONAL_PACKAGES = """
+import importlib.abc, sys
+OPTIONAL = {"aedat", "rosbags", "h5py", "hdf5plugin", "expelliarmus", "av", "matplotlib", "tonic", "dask"}
+class Absent(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in OPTIONAL:
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+sys.meta_path.insert(0, Absent())
+"""
+
+
+def test_import_needs_no_optional_package_and_a_reader_that_does_says_which(tmp_path):
+    """``import evseg_torch`` needs no optional package; a reader that needs one says so in one line."""
+    recording = tmp_path / "recording.aedat4"
+    recording.write_bytes(b"not read")
+    events = tmp_path / "events.txt"
+    write_txt(events, make_events(50))
+    script = _WITHOUT_OPTIONAL_PACKAGES + (
+        "from evseg_torch import CascadedSegmenter\n"
+        "from evseg_torch.errors import ReaderError\n"
+        "from evseg_torch.io import load_events\n"
+        f"print(len(load_events({str(events)!r})))\n"
+        "try:\n"
+        f"    load_events({str(recording)!r})\n"
+        "except ReaderError as err:\n"
+        "    print(err)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    count, error = run.stdout.splitlines()
+    assert count == "50"
+    assert error == (
+        f"{recording}: this AEDAT 4 file needs the optional package 'aedat' to be read: "
+        "pip install 'evseg-torch[io]'"
+    )

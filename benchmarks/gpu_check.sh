@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# The GPU check of a lent CUDA machine, as one short script (issue 20, item 8): the tests that take the
+# `device` fixture, on CUDA, then bench_batched.py at B = 1, 8 and 32 on CUDA, then the same at B = 8 on
+# the CPU for the ratio. The machine's own python3 and torch are used; kornia and PyMaxflow, which it
+# lacks, come as wheels in .whl/ (see the device notes in docs/speed.md). Output goes to $OUT/gpu_check.log
+# when OUT is set, else to stdout.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+log=${OUT:-/tmp}/gpu_check.log
+{
+    if compgen -G ".whl/*.whl" >/dev/null; then
+        python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
+        export PYTHONPATH=/tmp/site:$PWD
+    fi
+    export PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
+    nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
+    python3 -c "import torch, kornia, maxflow; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'kornia', kornia.__version__)"
+    echo "== CUDA tests"
+    timeout 240 python3 -m pytest -p no:cacheprovider -q --device cuda -k cuda tests -x -W ignore::UserWarning
+    echo "== bench_batched.py, CUDA"
+    timeout 240 python3 benchmarks/bench_batched.py --device cuda --windows 32 --batch-sizes 1 8 32 --threads 0
+    echo "== bench_batched.py, CPU (16 cores, same machine)"
+    timeout 120 python3 benchmarks/bench_batched.py --device cpu --windows 8 --batch-sizes 8 --threads 0
+} 2>&1 | tee "$log"
