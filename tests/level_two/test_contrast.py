@@ -376,7 +376,7 @@ class TestBatchedFits:
         for row, own in enumerate(events):
             count = 2 if row == 1 else 3
             alone = cmax(own, start[row, :count], weights[row, :count, : len(own)])
-            torch.testing.assert_close(fitted[row, :count], alone, atol=1e-3, rtol=0)
+            torch.testing.assert_close(fitted[row, :count], alone, atol=1e-3, rtol=1e-4)
             if device.type == "cpu":
                 assert torch.equal(fitted[row, :count], alone)
         assert torch.equal(fitted[1, 2], start[1, 2])
@@ -390,7 +390,7 @@ class TestBatchedFits:
         assert torch.all((fitted - start[:, :2]).abs().amax(dim=2) > 1)  # every cluster is fitted
         for row, own in enumerate(events):
             alone = cmax(own, start[row, :2])
-            torch.testing.assert_close(fitted[row], alone, atol=1e-3, rtol=0)
+            torch.testing.assert_close(fitted[row], alone, atol=1e-3, rtol=1e-4)
             if device.type == "cpu":
                 assert torch.equal(fitted[row], alone)
 
