@@ -244,8 +244,16 @@ class LevelTwoConfig(_Section):
             (:class:`~evseg_torch.level_two.cmax.ContrastMaximization`).
         temporal_edges: also join consecutive events at the same pixel in the graph (EMSGC: no).
         data_normalization: ``relative`` (each event's image value divided by its best over the pool,
-            floored at the pool's 90th percentile) or ``global`` (EMSGC: divided by the global maximum).
-            Relative separates layers far better on our scenes; see :mod:`evseg_torch.level_two.data_term`.
+            floored at a quantile of the pool's values) or ``global`` (EMSGC: divided by the global
+            maximum). Relative separates layers far better on our scenes; see
+            :mod:`evseg_torch.level_two.data_term`.
+        data_floor_quantile: in ``relative`` normalisation, the quantile, in (0, 1], of the best values
+            of the events whose best model is an event's own that floors its best value, so that each
+            layer's events are scaled by that layer's own sharpness (``null``: no such floor).
+        data_pool_floor_quantile: in ``relative`` normalisation, the quantile, in (0, 1], of all in-image
+            values of the pool that floors every event's best value, so that noise and weak texture do
+            not get large differences from small values (``null``: none; 0.9 alone was the floor before
+            the objects issue).
         data_polarity: read each event's data cost from the image of its own polarity's warped events
             (EMSGC: one image of all events).
         refit_max_events: each refit sees an evenly spaced subsample of at most this many events per
@@ -309,6 +317,8 @@ class LevelTwoConfig(_Section):
     data_normalization: str = _setting(
         "relative", choices=_Names("evseg_torch.level_two.data_term", "NORMALIZATIONS")
     )
+    data_floor_quantile: float | None = _setting(0.9, above=0, at_most=1)
+    data_pool_floor_quantile: float | None = _setting(0.75, above=0, at_most=1)
     data_polarity: bool = True
     refit_max_events: int | None = _setting(4000, at_least=1)
     label_tol: float = _setting(0.002, at_least=0, below=1)

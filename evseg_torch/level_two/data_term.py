@@ -19,8 +19,8 @@ Normalisations (``normalization``):
   other event's costs towards 255 and squeezes the differences between models, so the Potts term then
   decides alone.
 * ``"relative"`` (our default, a deviation from EMSGC): each event's values are divided by its own best
-  value over the pool, floored at the 90th percentile of all in-image values,
-  :math:`D_k(l) = 255 (1 - \min(1, I_l(x'_k) / \max(\max_m I_m(x'_m), q_{0.9})))`. The best model of a
+  value over the pool, floored (below),
+  :math:`D_k(l) = 255 (1 - \min(1, I_l(x'_k) / \max(\max_m I_m(x'_m), F_k)))`. The best model of a
   well-compensated event costs 0 and the others pay in proportion to how much less sharply they
   compensate it; events that every model compensates alike (the aperture problem on a striped texture,
   where two affine fields agree) cost about the same under all and the Potts term labels them by their
@@ -29,8 +29,18 @@ Normalisations (``normalization``):
   :func:`~evseg_torch.synthetic.make_scene` (10 seeds, 1–3 objects, ``lambda_smooth`` 30,
   ``lambda_label`` 8000), one labelling reaches the issue's quality bar (accuracy ≥ 0.9 and every
   object's IoU ≥ 0.8) on 5 of 10 scenes, against 1 of 10 with ``"global"`` (3 of 10 with the global
-  maximum replaced by the 99th percentile), both without the two refinements below. The costs stay in
-  ``[0, 255]``, so EMSGC's λ ranges apply.
+  maximum replaced by the 99th percentile), both without the two refinements below and with the floor
+  at the 90th percentile. The costs stay in ``[0, 255]``, so EMSGC's λ ranges apply.
+* The floor :math:`F_k` (beyond EMSGC, which has no relative term): the larger of the
+  ``floor_quantile`` (0.9) of the best values of the events whose best model is event :math:`k`'s, its
+  *own floor*, and the ``pool_floor_quantile`` (0.75) of all in-image values of the pool. Until the
+  objects issue the floor was the pool's 90th percentile alone: the densest layer then set it, a sparse
+  or weakly textured layer's models differed by a few units per event, and such a layer could lose its
+  label to the label cost beside a dense one (a small scene's background did so from its true model).
+  The own floor scales each layer's events by that layer's own sharpness; the pool floor keeps noise
+  and weak texture (all values small) from getting large differences out of small absolute ones,
+  which a pool floor alone below 0.7 no longer did (spurious clusters). Measured variants:
+  ``docs/objects.md``.
 
 Two refinements of EMSGC's construction, off by default here and on in level two:
 
@@ -59,7 +69,7 @@ centres, where bilinear interpolation would need a pixel beyond the border. No i
 from __future__ import annotations
 
 import math
-from numbers import Integral
+from numbers import Integral, Real
 
 import torch
 from torch import Tensor, nn
@@ -75,9 +85,6 @@ MAX_COST = 255.0
 
 NORMALIZATIONS = ("global", "relative")
 """Normalisations of the data term (module docstring)."""
-
-RELATIVE_FLOOR_QUANTILE = 0.9
-"""Quantile of all in-image IWE values that floors each event's best value in ``"relative"`` normalisation."""
 
 
 def sample_bilinear(
@@ -155,6 +162,8 @@ def data_cost(
     polarity: bool = False,
     margin: int | None = 0,
     valid: Tensor | None = None,
+    floor_quantile: float | None = 0.9,
+    pool_floor_quantile: float | None = 0.75,
 ) -> Tensor:
     r"""EMSGC's per-event data cost under each model of a pool, batched over the models and windows.
 
@@ -186,6 +195,11 @@ def data_cost(
         valid: for a batch, bool :math:`(B, K)`, which models of each pool are real; ``None`` for all.
             The others take no part in the normalisation or the margin and cost 255 at every event, so
             they never win.
+        floor_quantile: in ``"relative"`` normalisation, the quantile, in ``(0, 1]``, of the best values
+            of the events whose best model is an event's own that floors its best value; ``None`` for
+            no such floor.
+        pool_floor_quantile: in ``"relative"`` normalisation, the quantile, in ``(0, 1]``, of all
+            in-image values of the pool that floors every event's best value; ``None`` for none.
 
     Returns:
         Costs in ``[0, 255]``, :math:`(N, K)`, or :math:`(B, N_{max}, K)` for a batch (255 at padding
@@ -196,7 +210,8 @@ def data_cost(
         ShapeError: if ``params`` is not :math:`(K, P)` (:math:`(B, K, P)` for a batch) with ``K >= 1``
             and the model's ``P``, or ``valid`` is not :math:`(B, K)`.
         ModelError: if ``params`` hold NaN or inf.
-        ConfigError: for an unknown ``normalization``.
+        ConfigError: for an unknown ``normalization``, or a floor quantile that is not ``None`` or in
+            ``(0, 1]``.
 
     Examples:
         >>> from evseg_torch.events import batch_windows
@@ -231,6 +246,7 @@ def data_cost(
     if normalization not in NORMALIZATIONS:
         raise ConfigError(f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}")
     _check_margin(margin)
+    _check_floor_quantiles(floor_quantile, pool_floor_quantile)
     if not batched:
         events, params = batch_of_one(events), params[None]
     n_windows, n_models = params.shape[:2]
@@ -272,8 +288,13 @@ def data_cost(
             shown = shown * valid.view(*valid.shape, *[1] * (iwes.ndim - 2))
         peak = shown.flatten(1).amax(dim=1).clamp_min(tiny)[:, None, None]
     else:
-        floor = _quantile(values, inside, RELATIVE_FLOOR_QUANTILE)
-        peak = values.amax(dim=1, keepdim=True).clamp_min(floor.clamp_min(tiny)[:, None, None])
+        best, owner = values.max(dim=1)  # (B, N): each event's best value and the model giving it
+        floor = torch.full_like(best, tiny)
+        if pool_floor_quantile is not None:
+            floor = floor.maximum(_quantile(values, inside, pool_floor_quantile)[:, None])
+        if floor_quantile is not None:
+            floor = floor.maximum(_own_floors(best, owner, inside.any(dim=1), n_models, floor_quantile))
+        peak = best.maximum(floor)[:, None]
     ratio = (values / peak).clamp(max=1)
     cost = torch.where(inside, MAX_COST * (1 - ratio), torch.full_like(values, MAX_COST)).transpose(1, 2)
     return cost if batched else cost[0]
@@ -282,6 +303,33 @@ def data_cost(
 def _check_margin(margin) -> None:
     if margin is not None and (isinstance(margin, bool) or not isinstance(margin, Integral) or margin < 0):
         raise ConfigError(f"margin must be a non-negative integer or None, got {margin!r}")
+
+
+def _check_floor_quantiles(own, pool) -> None:
+    for name, quantile in (("floor_quantile", own), ("pool_floor_quantile", pool)):
+        if quantile is not None and (
+            isinstance(quantile, bool) or not isinstance(quantile, Real) or not 0 < quantile <= 1
+        ):
+            raise ConfigError(f"{name} must be None or a number in (0, 1], got {quantile!r}")
+
+
+def _own_floors(best: Tensor, owner: Tensor, seen: Tensor, n_models: int, q: float) -> Tensor:
+    """Each event's own floor: the ``q``-quantile of the best values of its window's events whose best
+    model is its own.
+
+    Args:
+        best, owner: each event's best value and the model giving it, :math:`(B, N)`.
+        seen: whether the event is inside the image of some model, :math:`(B, N)`.
+
+    Returns:
+        :math:`(B, N)`.
+    """
+    n_windows, n_events = best.shape
+    models = torch.arange(n_models, device=owner.device)[:, None]
+    mine = (owner[:, None] == models) & seen[:, None]  # (B, K, N)
+    values = best[:, None].expand(-1, n_models, -1).reshape(n_windows * n_models, n_events)
+    floors = _quantile(values, mine.flatten(0, 1), q).view(n_windows, n_models)
+    return floors.gather(1, owner)
 
 
 def _margins(warped: Tensor, real: Tensor, height: int, width: int) -> list[int]:
@@ -328,6 +376,7 @@ class DataCost(nn.Module):
         normalization: ``"global"`` (EMSGC) or ``"relative"``.
         polarity: read each event from its own polarity's IWE.
         margin: IWE margin in pixels beyond the sensor; ``None`` chooses it per call and window.
+        floor_quantile, pool_floor_quantile: the floors' quantiles in ``"relative"`` normalisation.
 
     Shape:
         - Input: ``events`` of N events, ``params`` :math:`(K, P)`; or a padded batch of B windows,
@@ -343,17 +392,22 @@ class DataCost(nn.Module):
         normalization: str = "global",
         polarity: bool = False,
         margin: int | None = 0,
+        floor_quantile: float | None = 0.9,
+        pool_floor_quantile: float | None = 0.75,
     ) -> None:
         super().__init__()
         if normalization not in NORMALIZATIONS:
             raise ConfigError(f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}")
         _check_margin(margin)
+        _check_floor_quantiles(floor_quantile, pool_floor_quantile)
         self.model = model
         self.sensor_size = tuple(sensor_size or model.sensor_size)
         self.sigma = float(sigma)
         self.normalization = normalization
         self.polarity = bool(polarity)
         self.margin = margin
+        self.floor_quantile = floor_quantile
+        self.pool_floor_quantile = pool_floor_quantile
 
     def forward(self, events: EventBatch, params: Tensor, valid: Tensor | None = None) -> Tensor:
         return data_cost(
@@ -366,10 +420,13 @@ class DataCost(nn.Module):
             polarity=self.polarity,
             margin=self.margin,
             valid=valid,
+            floor_quantile=self.floor_quantile,
+            pool_floor_quantile=self.pool_floor_quantile,
         )
 
     def extra_repr(self) -> str:
         return (
             f"model={self.model.name}, sensor_size={self.sensor_size}, sigma={self.sigma}, "
-            f"normalization={self.normalization!r}, polarity={self.polarity}, margin={self.margin}"
+            f"normalization={self.normalization!r}, polarity={self.polarity}, margin={self.margin}, "
+            f"floor_quantile={self.floor_quantile}, pool_floor_quantile={self.pool_floor_quantile}"
         )

@@ -167,6 +167,8 @@ class GraphCutContrastSegmenter(nn.Module):
             cfg.data_normalization,
             polarity=cfg.data_polarity,
             margin=None,
+            floor_quantile=cfg.data_floor_quantile,
+            pool_floor_quantile=cfg.data_pool_floor_quantile,
         )
         refit = {
             "objective": cfg.objective,

@@ -178,7 +178,8 @@ class TestDataCost:
         pool = torch.tensor([[300.0, -100.0], [0.0, 0.0], [-300.0, 0.0]])
         cost = data_cost(model, events, pool, normalization="relative")
         assert cost.shape == (400, 3) and cost.min() >= 0 and cost.max() <= 255
-        assert (cost.min(1).values == 0).float().mean() > 0.2  # best value above the floor
+        # Best values at or above the floor cost 0: at least the sharpest tenth of a model's own events.
+        assert (cost.min(1).values == 0).float().mean() >= 0.09
         assert (cost.argmin(1) == 0).float().mean() > 0.9
         # The costs of a model do not depend on how sharp the pool's other images are elsewhere: only
         # each event's own best value (and the floor) counts; two copies of a model cost the same.
@@ -186,6 +187,46 @@ class TestDataCost:
         torch.testing.assert_close(duplicate[:, 0], duplicate[:, 1])
         with pytest.raises(ConfigError, match="normalization"):
             data_cost(model, events, pool, normalization="max")
+
+    def test_own_floor_scales_each_layer_by_its_own_sharpness(self):
+        # A sparse line beside a dense one, each moving on its own. With the pool's 90th percentile
+        # alone as the floor (the floor before the objects issue) the dense line sets it, and none of the
+        # sparse line's events costs 0 under its own model; with each event's own floor, the sharpest
+        # tenth of each line's events does.
+        dense = _edge_events(count=1600, flow=(300.0, -100.0), size=(32, 80), seed=0)
+        sparse = _edge_events(count=100, flow=(-200.0, 50.0), size=(32, 80), seed=1)
+        xy = torch.cat([dense.xy, sparse.xy + torch.tensor([40.0, 0.0])])
+        order = torch.argsort(torch.cat([dense.t, sparse.t]))
+        events = EventBatch(xy[order], torch.cat([dense.t, sparse.t])[order], torch.ones(1700))
+        layer = (order >= 1600).long()  # 0 dense, 1 sparse
+        model, pool = Translation((32, 80)), torch.tensor([[300.0, -100.0], [-200.0, 50.0]])
+
+        def costs(own, pool_floor):
+            return data_cost(
+                model,
+                events,
+                pool,
+                normalization="relative",
+                floor_quantile=own,
+                pool_floor_quantile=pool_floor,
+            )
+
+        pool_only, own_only, both = costs(None, 0.9), costs(0.9, None), costs(0.9, 0.75)
+        own_cost = own_only.gather(1, layer[:, None])[:, 0]
+        assert (pool_only[layer == 1, 1] == 0).sum() == 0
+        for index in (0, 1):
+            assert (own_cost[layer == index] == 0).float().mean() >= 0.09
+        # A floor is a lower bound of each event's divisor: the larger of two floors costs at least as much.
+        assert torch.all(both >= own_only - 1e-4) and torch.all(both >= costs(None, 0.75) - 1e-4)
+
+    @pytest.mark.parametrize(
+        "name, value", [("floor_quantile", 0.0), ("floor_quantile", 1.5), ("pool_floor_quantile", True)]
+    )
+    def test_floor_quantiles_are_checked(self, name, value):
+        with pytest.raises(ConfigError, match=name):
+            data_cost(Translation((32, 40)), _edge_events(), torch.zeros(1, 2), **{name: value})
+        with pytest.raises(ConfigError, match=name):
+            DataCost(Translation((32, 40)), **{name: value})
 
     @pytest.mark.parametrize("normalization", NORMALIZATIONS)
     def test_empty_window(self, normalization):

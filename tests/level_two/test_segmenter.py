@@ -115,7 +115,9 @@ class TestGraphCutContrastSegmenter:
         again = segmenter(events, survivors, init_labels=result.labels)
         cost = segmenter.data_term(events, survivors)
         before = labeling_energy(result.labels.numpy(), cost.double().numpy(), edges, weights, **energy)
-        assert again.energy_history[0] <= before + 1e-6
+        # The segmenter sums each site's event costs in float32, this test in float64: equal up to that
+        # rounding (1.4e-4 of 2.2e5 seen), not bit for bit.
+        assert again.energy_history[0] <= before * (1 + 1e-6)
 
     def test_list_input_matches_single_calls(self, two_layers):
         events, _, flows = two_layers
