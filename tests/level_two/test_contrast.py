@@ -376,7 +376,9 @@ class TestBatchedFits:
         for row, own in enumerate(events):
             count = 2 if row == 1 else 3
             alone = cmax(own, start[row, :count], weights[row, :count, : len(own)])
-            torch.testing.assert_close(fitted[row, :count], alone, atol=1e-3, rtol=1e-4)
+            # On CUDA, scatter-adds sum in no fixed order, so batched and solo paths part a little (0.22 of
+            # ~200 px/s on an H200): equal to a hundredth of a pixel over the window; on the CPU bit for bit.
+            torch.testing.assert_close(fitted[row, :count], alone, atol=0.01 / DURATION, rtol=0)
             if device.type == "cpu":
                 assert torch.equal(fitted[row, :count], alone)
         assert torch.equal(fitted[1, 2], start[1, 2])
@@ -390,7 +392,7 @@ class TestBatchedFits:
         assert torch.all((fitted - start[:, :2]).abs().amax(dim=2) > 1)  # every cluster is fitted
         for row, own in enumerate(events):
             alone = cmax(own, start[row, :2])
-            torch.testing.assert_close(fitted[row], alone, atol=1e-3, rtol=1e-4)
+            torch.testing.assert_close(fitted[row], alone, atol=0.01 / DURATION, rtol=0)
             if device.type == "cpu":
                 assert torch.equal(fitted[row], alone)
 
