@@ -1,12 +1,13 @@
-"""Time per window with level two's objects on and off, side by side in one process.
+"""Time per window of the default config against a config before a change, side by side in one process.
 
-Each window is segmented twice in a row, once with the default config and once with
-``level_two.objects: false`` (the paper's per-motion clusters), alternating which goes first, so that
-both see the same machine load. Windows: the 24 probe scenes, ``hard`` seeds ``--hard``, and the
-windows of EED's ``occlusions`` centred on its boxes (with the bundled ``eed.yaml``). Prints the
-median ms per window of each, and the median of the per-window ratios.
+Each window is segmented twice in a row, once with the default config and once with the ``--before``
+overrides (by default ``objects=false``, the paper's per-motion clusters), alternating which goes
+first, so that both see the same machine load. Windows: the 24 probe scenes, ``hard`` seeds
+``--hard``, and the windows of EED's ``occlusions`` centred on its boxes (with the bundled
+``eed.yaml``). Prints the median ms per window of each, and the median of the per-window ratios.
 
-    OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_objects_time.py [--hard 0-19]
+    OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_config_time.py [--hard 0-19] \
+        [--before data_floor_quantile=null --before data_pool_floor_quantile=0.9]
 """
 
 import argparse
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from bench_quality import override  # the benchmarks' one KEY=VALUE parser (run as a script)
 
 from evseg_torch.cli import _seed_range
 from evseg_torch.config import SegmenterConfig, bundled_config, load_config, replace_config
@@ -48,15 +50,23 @@ def windows(hard_seeds) -> list[tuple[str, np.ndarray, tuple[int, int], bool]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hard", type=_seed_range, default=list(range(20)), help="hard-family seeds")
+    parser.add_argument(
+        "--before",
+        type=override,
+        action="append",
+        metavar="KEY=VALUE",
+        help="flat config override of the config timed against the default (repeatable; objects=false)",
+    )
     args = parser.parse_args()
+    before = dict(args.before or [("objects", False)])
     torch.set_num_threads(1)
     configs = {"default": SegmenterConfig(), "eed": load_config(bundled_config("eed"))}
     times = {}
     for index, (name, events, size, eed) in enumerate(windows(args.hard)):
         base = configs["eed" if eed else "default"]
         segmenters = {
-            "objects": CascadedSegmenter(size, base),
-            "per-motion": CascadedSegmenter(size, replace_config(base, objects=False)),
+            "default": CascadedSegmenter(size, base),
+            "before": CascadedSegmenter(size, replace_config(base, **before)),
         }
         order = list(segmenters) if index % 2 == 0 else list(segmenters)[::-1]
         for key in order:
@@ -64,11 +74,12 @@ def main() -> None:
             segmenters[key](events)
             times.setdefault(name, {}).setdefault(key, []).append(1e3 * (time.perf_counter() - start))
     print(f"{platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}")
-    print(f"{'windows':<16} {'n':>3} {'objects ms':>10} {'per-motion ms':>13} {'ratio':>6}")
+    print(f"before: {before}")
+    print(f"{'windows':<16} {'n':>3} {'default ms':>10} {'before ms':>10} {'ratio':>6}")
     for name, pair in times.items():
-        on, off = np.array(pair["objects"]), np.array(pair["per-motion"])
+        on, off = np.array(pair["default"]), np.array(pair["before"])
         ratio = np.median(on / off)
-        print(f"{name:<16} {len(on):>3} {np.median(on):>10.0f} {np.median(off):>13.0f} {ratio:>6.2f}")
+        print(f"{name:<16} {len(on):>3} {np.median(on):>10.0f} {np.median(off):>10.0f} {ratio:>6.2f}")
 
 
 if __name__ == "__main__":
