@@ -71,6 +71,7 @@ from __future__ import annotations
 import math
 from numbers import Integral, Real
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -343,8 +344,9 @@ def _margins(warped: Tensor, real: Tensor, height: int, width: int) -> list[int]
 
 
 def _quantile(values: Tensor, selected: Tensor, q: float) -> Tensor:
-    """Per window, the ``q``-quantile of its selected values, by ``kthvalue`` (no size limit, unlike
-    ``torch.quantile``) and without interpolation; the smallest normal number where none is selected.
+    """Per window, the ``q``-quantile of its selected values, by selection (``kthvalue``, NumPy's
+    ``partition`` on the CPU: no size limit, unlike ``torch.quantile``) and without interpolation; the
+    smallest normal number where none is selected.
 
     Args:
         values, selected: :math:`(B, ...)`.
@@ -362,7 +364,12 @@ def _quantile(values: Tensor, selected: Tensor, q: float) -> Tensor:
     if width:
         lead = torch.arange(width, device=flat.device) < (top - ranks)[:, None]
         flat = torch.cat([flat, torch.where(lead, -torch.inf, torch.inf).to(flat.dtype)], dim=1)
-    kth = flat.kthvalue(top, dim=1).values
+    if flat.device.type == "cpu":
+        # NumPy's introselect picks the same element as kthvalue in about half the time (200k values:
+        # 1.1 against 2.6 ms): the floors are two of the data term's largest steps.
+        kth = torch.from_numpy(np.partition(flat.numpy(), top - 1, axis=1)[:, top - 1])
+    else:
+        kth = flat.kthvalue(top, dim=1).values
     return torch.where(counts > 0, kth, torch.finfo(flat.dtype).tiny)
 
 
