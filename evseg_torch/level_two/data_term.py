@@ -77,7 +77,7 @@ from torch import Tensor, nn
 
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one
-from evseg_torch.level_two.iwe import extent_mask, splat_events, warp_events
+from evseg_torch.level_two.iwe import extent_mask, read_flat, splat_events, warp_events
 from evseg_torch.motion import MotionModel
 
 __all__ = ["DataCost", "data_cost", "sample_bilinear"]
@@ -145,7 +145,7 @@ def sample_bilinear(
     down = width if height > 1 else 0
 
     def tap(offset: int) -> Tensor:
-        return flat[base + offset]
+        return read_flat(flat, base + offset)
 
     top = tap(0) * (1 - fx) + tap(right) * fx
     bottom = tap(down) * (1 - fx) + tap(down + right) * fx

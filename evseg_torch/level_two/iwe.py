@@ -337,6 +337,13 @@ def scatter_taps(
     return image.view(*out_shape, height + 4, width + 4)[..., 2 : height + 2, 2 : width + 2], index
 
 
+def read_flat(flat: Tensor, index: Tensor) -> Tensor:
+    """``flat[index]`` for a 1-D ``flat`` and an int64 ``index`` of any shape, by ``index_select``: the same
+    values as advanced indexing, three times as fast on the CPU (200k reads of a 600k-pixel image: 165
+    against 477 µs), where the data term and the fits' gradients read images at every event's taps."""
+    return flat.index_select(0, index.reshape(-1)).view(index.shape)
+
+
 def bilinear_taps(
     xy: Tensor, weights: Tensor | None, height: int, width: int
 ) -> tuple[Tensor, list[tuple[int, Tensor]]]:

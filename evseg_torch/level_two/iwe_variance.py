@@ -20,7 +20,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from evseg_torch.errors import ShapeError
-from evseg_torch.level_two.iwe import bilinear_taps, extent_mask, gaussian_blur, scatter_taps
+from evseg_torch.level_two.iwe import bilinear_taps, extent_mask, gaussian_blur, read_flat, scatter_taps
 from evseg_torch.level_two.linear_warp import sum_ignoring_padding
 
 
@@ -112,8 +112,8 @@ def iwe_variance_and_pullback(
         padded[:, 2 : height + 2, 2 : width + 2] = grad_image
         flat = padded.flatten()
         stride = width + 4
-        g00, g01 = flat[index], flat[index + 1]
-        g10, g11 = flat[index + stride], flat[index + stride + 1]
+        g00, g01 = read_flat(flat, index), read_flat(flat, index + 1)
+        g10, g11 = read_flat(flat, index + stride), read_flat(flat, index + stride + 1)
         fx, fy = fraction.unbind(-1)
         top = torch.lerp(g00, g01, fx)  # the taps' gradient along the upper and lower rows
         bottom = torch.lerp(g10, g11, fx)
