@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # The GPU check of a lent CUDA machine, as one short script (issue 20, item 8): the tests that take the
 # `device` fixture, on CUDA, then bench_batched.py at B = 1, 8 and 32 on CUDA, then the same at B = 8 on
-# the CPU for the ratio. The machine's own python3 and torch are used; kornia and PyMaxflow, which it
-# lacks, come as wheels in .whl/ (see the device notes in docs/speed.md); tests/io, which needs the io
-# extra and has no CUDA test, is left out. Output goes to $OUT/gpu_check.log
+# the CPU for the ratio. The machine's own python3 (3.12) and torch are used; kornia and PyMaxflow, which
+# it lacks, come as wheels in .whl/ (git-ignored through .git/info/exclude), fetched beforehand with
+#   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#       --platform manylinux_2_17_x86_64 -d .whl kornia kornia_rs PyMaxflow
+# tests/io, which needs the io extra and has no CUDA test, is left out. Output goes to $OUT/gpu_check.log
 # when OUT is set, else to stdout.
 set -uo pipefail
 cd "$(dirname "$0")/.."

@@ -87,6 +87,12 @@ MAX_COST = 255.0
 NORMALIZATIONS = ("global", "relative")
 """Normalisations of the data term (module docstring)."""
 
+OWN_FLOOR_QUANTILE = 0.9
+"""Default quantile of an event's own floor in ``"relative"`` normalisation (module docstring)."""
+
+POOL_FLOOR_QUANTILE = 0.75
+"""Default quantile of the pool's floor in ``"relative"`` normalisation (module docstring)."""
+
 
 def sample_bilinear(
     images: Tensor, xy: Tensor, image_index: Tensor | None = None, extent: Tensor | None = None
@@ -163,8 +169,8 @@ def data_cost(
     polarity: bool = False,
     margin: int | None = 0,
     valid: Tensor | None = None,
-    floor_quantile: float | None = 0.9,
-    pool_floor_quantile: float | None = 0.75,
+    floor_quantile: float | None = OWN_FLOOR_QUANTILE,
+    pool_floor_quantile: float | None = POOL_FLOOR_QUANTILE,
 ) -> Tensor:
     r"""EMSGC's per-event data cost under each model of a pool, batched over the models and windows.
 
@@ -399,8 +405,8 @@ class DataCost(nn.Module):
         normalization: str = "global",
         polarity: bool = False,
         margin: int | None = 0,
-        floor_quantile: float | None = 0.9,
-        pool_floor_quantile: float | None = 0.75,
+        floor_quantile: float | None = OWN_FLOOR_QUANTILE,
+        pool_floor_quantile: float | None = POOL_FLOOR_QUANTILE,
     ) -> None:
         super().__init__()
         if normalization not in NORMALIZATIONS:
