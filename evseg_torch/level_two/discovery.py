@@ -7,9 +7,9 @@ regions (spatially connected groups of events on the pixel grid) are proposed:
 
 * **split**: a cluster whose events form two or more separate groups of at least ``min_events`` each
   (two objects that one compromise model holds, or an object and a patch of background) proposes each
-  group, the largest cluster (the background) each group but its largest; a cluster of one group other
-  than the largest proposes its two halves across its principal axis (:func:`bisect`): two touching
-  objects held by one compromise model are each compensated more sharply by a model of their own;
+  group; a cluster of one group other than the largest proposes its two halves across its principal
+  axis (:func:`bisect`): two touching objects held by one compromise model are each compensated more
+  sharply by a model of their own;
 * **merge**: two touching clusters other than the largest (an object that a poor model split in two)
   propose their union;
 * **residual**: events that their own model compensates badly (data cost at least ``residual_cost`` of
@@ -83,15 +83,10 @@ def candidate_regions(
     n_clusters = int(labels.max()) + 1 if len(labels) else 0
     for cluster in range(n_clusters):
         groups = _connected_groups(xy, labels == cluster, sensor_size, min_events, radius)
-        if cluster == 0:
-            # The largest cluster spans the view (the background). Its largest group is proposed by no
-            # one: that model is the background's own, refitted once its other groups have left it (the
-            # descent's next refit), and fitting it was most of discovery's time (docs/speed.md). Nor are
-            # the halves of a background of one group: a model of half of it only overfits that half
-            # (measured: it split the background of sparse windows).
-            groups = sorted(groups, key=len)[:-1]
-        elif len(groups) == 1:
-            groups = [part for part in bisect(xy, groups[0]) if len(part) >= min_events]
+        if len(groups) == 1:
+            # Not the largest cluster: it spans the view (the background), and a model of half of it
+            # only overfits that half (measured: it split the background of sparse windows).
+            groups = [part for part in bisect(xy, groups[0]) if len(part) >= min_events] if cluster else []
         regions += [(cluster, members) for members in groups]
     for first in range(1, n_clusters):
         for second in range(first + 1, n_clusters):

@@ -111,16 +111,6 @@ class TestCandidateRegions:
         # The largest cluster is not bisected: a region from it holds all of it.
         assert all(set(members.tolist()) == set(background.tolist()) for c, members in regions if c == 0)
 
-    def test_largest_cluster_proposes_its_groups_but_the_largest(self):
-        xy, labels, (_, patch, _) = _layout(
-            (0, (0, 20, 0, 40)),  # 800 events: the background's main group
-            (0, (40, 50, 30, 36)),  # 60 events of the background, apart from it
-            (1, (30, 36, 2, 10)),
-        )
-        from_background = [members for cluster, members in _as_sets(_regions(xy, labels)) if cluster == 0]
-        # The main group would only be the background's own model refitted (the descent's refit does it).
-        assert from_background == [frozenset(patch.tolist())]
-
     def test_halves_below_min_events_are_dropped(self):
         xy, labels, _ = _layout((0, (0, 20, 0, 40)), (1, (30, 40, 20, 24)))  # 40 events, halves of 20
         assert [c for c, _ in _regions(xy, labels, min_events=20)].count(1) == 2
