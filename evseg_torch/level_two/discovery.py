@@ -24,6 +24,13 @@ fit: a pure translation at the velocity of the region's event centroid (the leas
 events' positions over time, which a small object's streak follows closely whatever the pool says), and
 the model of the cluster it came from moved to that velocity, its rotation and scale kept
 (:func:`recentred`; the cluster's own model where the region moves with it).
+
+One region is scored before it is fitted: the largest from the largest cluster (the background's main
+group) is fitted only if one of its starts already compensates it more sharply than the background's
+model. Where none does, its fit returns to that model (0.3–1.6 px apart over the window on EED
+windows), which the descent's refit gives anyway, and that fit on a whole-sensor image was most of
+discovery's time; where one does, it is a motion hidden in the background (an object level one missed
+that the background's label holds), and its fit is how it is found (``docs/speed.md``).
 """
 
 from __future__ import annotations
@@ -275,8 +282,8 @@ class Discovery:
                 residual_cost=self.config.discovery_residual_cost,
                 radius=self.config.discovery_radius,
             )
-            regions = regions[: self.config.discovery_max_proposals]
-            candidates.append(self._proposal_starts(state, regions))
+            candidate, regions = self._proposal_starts(state, regions[: self.config.discovery_max_proposals])
+            candidates.append(candidate)
             state.regions = [members for _, members in regions]
         counts = [len(candidate.start) for candidate in candidates]
         fitted = [candidate.start for candidate in candidates]
@@ -303,14 +310,20 @@ class Discovery:
             else:
                 state.step = "stop"
 
-    def _proposal_starts(self, state: WindowState, regions: list[tuple[int, np.ndarray]]) -> _Candidates:
-        """The regions of one window (:func:`~evseg_torch.level_two.discovery.candidate_regions`) and the
-        start of each one's fit."""
+    def _proposal_starts(
+        self, state: WindowState, regions: list[tuple[int, np.ndarray]]
+    ) -> tuple[_Candidates, list[tuple[int, np.ndarray]]]:
+        """The regions of one window (:func:`~evseg_torch.level_two.discovery.candidate_regions`) worth a
+        fit, and the start of each one's fit.
+
+        The background's largest region is worth one only if a start already compensates it more sharply
+        than the background's model: otherwise its fit returns to that model, which the descent's refit
+        gives anyway (module docstring)."""
         params, device = state.params, state.params.device
         members = params.new_zeros(len(regions), len(state.events))
         if not regions:
             empty = params.new_zeros(0, params.shape[1])
-            return _Candidates(members, empty, empty, *gather_members(state.events, members))
+            return _Candidates(members, empty, empty, *gather_members(state.events, members)), regions
         sizes = [len(region) for _, region in regions]
         rows = torch.as_tensor(np.repeat(np.arange(len(regions)), sizes), device=device)
         members[rows, torch.as_tensor(np.concatenate([region for _, region in regions]), device=device)] = 1.0
@@ -321,11 +334,27 @@ class Discovery:
         translation = translation_params(self.model, own.xy, weights, velocity)
         starts = torch.stack([recentred(self.model, own.xy, weights, origin, velocity), translation])
         with torch.no_grad():
-            # Of the two starts, the fit continues from the sharper one: an optimiser's iterations on
-            # the other would mostly be spent where the first already is.
-            sharper = self._region_loss(own, starts.flatten(0, 1), weights).view(2, -1).argmin(dim=0)
+            losses = self._region_loss(own, torch.cat([origin, starts.flatten(0, 1)]), weights).view(3, -1)
+        # Of the two starts, the fit continues from the sharper one: an optimiser's iterations on the
+        # other would mostly be spent where the first already is.
+        best, sharper = losses[1:].min(dim=0)
         start = starts[sharper, torch.arange(len(regions), device=device)]
-        return _Candidates(members, start, origin, own, weights)
+        worth = [True] * len(regions)
+        background = [row for row, (cluster, _) in enumerate(regions) if cluster == 0]
+        if background:
+            main = max(background, key=lambda row: sizes[row])
+            worth[main] = bool(best[main] < losses[0, main])
+        if all(worth):
+            return _Candidates(members, start, origin, own, weights), regions
+        kept = torch.as_tensor(worth, device=device)
+        candidate = _Candidates(
+            members[kept],
+            start[kept],
+            origin[kept],
+            EventBatch(own.xy[kept], own.t[kept], own.p[kept]),
+            weights[kept],
+        )
+        return candidate, [region for region, keep in zip(regions, worth, strict=True) if keep]
 
     def _accepted(self, candidate: _Candidates, fitted: Tensor) -> Tensor:
         """Which fitted proposals :math:`(R, P)` of one window sharpen their regions without collapse,
@@ -349,12 +378,16 @@ class Discovery:
         return keep
 
     def _region_loss(self, events: EventBatch, params: Tensor, weights: Tensor) -> Tensor:
-        """Contrast loss of ``params`` (two rows per region) on the gathered regions' events."""
+        """Contrast loss of ``params`` (the same number of rows per region, a block of rows each) on the
+        gathered regions' events."""
+        repeats = params.shape[0] // weights.shape[0]
         return contrast_loss(
             self.model,
-            EventBatch(events.xy.repeat(2, 1, 1), events.t.repeat(2, 1), events.p.repeat(2, 1)),
+            EventBatch(
+                events.xy.repeat(repeats, 1, 1), events.t.repeat(repeats, 1), events.p.repeat(repeats, 1)
+            ),
             params,
-            weights.repeat(2, 1),
+            weights.repeat(repeats, 1),
             sensor_size=self.sensor_size,
             objective=self.config.objective,
             sigma=self.config.sigma,

@@ -8,6 +8,7 @@ from evseg_torch.errors import ConfigError, EventFormatError, ModelError, ShapeE
 from evseg_torch.events import EventBatch, batch_windows, to_torch
 from evseg_torch.graphcut.alpha_expansion import labeling_energy
 from evseg_torch.level_two import segmenter as segmenter_module
+from evseg_torch.level_two.discovery import Discovery
 from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter, LevelTwoResult
 from evseg_torch.metrics import labelling_accuracy, per_object_iou
@@ -443,6 +444,29 @@ class TestDiscovery:
         assert np.all(ious[:, 1] >= ious[:, 0] - 0.05), ious
         added = [results[1].params.shape[0] > results[0].params.shape[0] for *_, results in missing_motion]
         assert sum(added) >= 3, added
+
+    def test_background_main_region_is_fitted_only_when_a_start_is_sharper(self, monkeypatch):
+        # Seed 4: the missing object sits in the largest cluster, whose main group's start is sharper than
+        # that cluster's model (the proposal finds the object); from the true models it is not, and that
+        # fit, which would only return to the background's model, is skipped.
+        proposed = []
+        original = Discovery._proposal_starts
+
+        def spy(self, state, regions):
+            candidate, kept = original(self, state, regions)
+            main = max((members for cluster, members in regions if cluster == 0), key=len, default=None)
+            proposed.append(main is not None and any(members is main for _, members in kept))
+            assert len(candidate.start) == len(kept)
+            return candidate, kept
+
+        monkeypatch.setattr(Discovery, "_proposal_starts", spy)
+        scene, events, _, pool = _missing_motion_window(4)
+        truth = torch.as_tensor(np.stack([motion.params for motion in scene.motions]), dtype=torch.float32)
+        segmenter = GraphCutContrastSegmenter(scene.motions[0].model, DISCOVERY_SIZE)
+        for start, fitted in ((pool, True), (truth, False)):
+            proposed.clear()
+            segmenter(events, start)
+            assert proposed == [fitted]
 
     def test_no_discovery_only_removes_models(self, missing_motion):
         # The paper's level two (no discovery, no object phase, whose splits add clusters): the pool only
