@@ -366,15 +366,24 @@ def _quantile(values: Tensor, selected: Tensor, q: float) -> Tensor:
     """
     counts = selected.flatten(1).sum(dim=1)
     ranks = (counts.double() * q).round().clamp_min(1).long()
+    select = _select_by_partition if values.device.type == "cpu" else _select_by_kthvalue
+    return select(values.detach().flatten(1), selected.flatten(1), ranks, counts)
+
+
+def _select_by_partition(values: Tensor, selected: Tensor, ranks: Tensor, counts: Tensor) -> Tensor:
+    """Each row's ``ranks``-th smallest selected value (CPU tensors :math:`(B, M)`), by NumPy."""
     tiny = torch.finfo(values.dtype).tiny
-    if values.device.type == "cpu":
-        rows, chosen = values.detach().flatten(1).numpy(), selected.flatten(1).numpy()
-        kth = [
-            np.partition(row[mask], rank - 1)[rank - 1] if count else tiny
-            for row, mask, rank, count in zip(rows, chosen, ranks.tolist(), counts.tolist(), strict=True)
-        ]
-        return torch.tensor(np.array(kth, dtype=rows.dtype))
-    flat = torch.where(selected, values.detach(), torch.inf).flatten(1)
+    rows, chosen = values.numpy(), selected.numpy()
+    kth = [
+        np.partition(row[mask], rank - 1)[rank - 1] if count else tiny
+        for row, mask, rank, count in zip(rows, chosen, ranks.tolist(), counts.tolist(), strict=True)
+    ]
+    return torch.tensor(np.array(kth, dtype=rows.dtype))
+
+
+def _select_by_kthvalue(values: Tensor, selected: Tensor, ranks: Tensor, counts: Tensor) -> Tensor:
+    """Each row's ``ranks``-th smallest selected value :math:`(B, M)`, by one ``kthvalue`` for all rows."""
+    flat = torch.where(selected, values, torch.inf)
     # Each window's rank becomes the largest by as many -inf beside its values: one kthvalue for all. The
     # padding is only as wide as that (none for one window) and the top rank needs.
     top = int(ranks.max())
@@ -383,7 +392,7 @@ def _quantile(values: Tensor, selected: Tensor, q: float) -> Tensor:
         lead = torch.arange(width, device=flat.device) < (top - ranks)[:, None]
         flat = torch.cat([flat, torch.where(lead, -torch.inf, torch.inf).to(flat.dtype)], dim=1)
     kth = flat.kthvalue(top, dim=1).values
-    return torch.where(counts > 0, kth, tiny)
+    return torch.where(counts > 0, kth, torch.finfo(values.dtype).tiny)
 
 
 class DataCost(nn.Module):

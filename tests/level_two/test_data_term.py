@@ -3,7 +3,15 @@ import torch
 
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_windows
-from evseg_torch.level_two.data_term import NORMALIZATIONS, DataCost, _margins, data_cost, sample_bilinear
+from evseg_torch.level_two.data_term import (
+    NORMALIZATIONS,
+    DataCost,
+    _margins,
+    _select_by_kthvalue,
+    _select_by_partition,
+    data_cost,
+    sample_bilinear,
+)
 from evseg_torch.level_two.iwe import splat_events, warp_events
 from evseg_torch.motion import Affine4, Translation
 
@@ -330,3 +338,21 @@ class TestDataCost:
             data_cost(Translation((32, 40)), events, torch.tensor([[0.0, float("nan")]]))
         with pytest.raises(ShapeError, match="images must be"):
             sample_bilinear(torch.zeros(2, 3, 3), torch.zeros(1, 4, 2))
+
+
+@pytest.mark.parametrize("q", [0.25, 0.75, 0.9, 1.0])
+def test_quantile_selections_agree(q):
+    # The CPU's selection (NumPy's partition of each row's selected values) and the one for other devices
+    # (one kthvalue over rows padded with infinities) pick the same element: the rank-th smallest.
+    generator = torch.Generator().manual_seed(0)
+    values = torch.rand(5, 300, generator=generator)
+    share = torch.tensor([0.0, 0.01, 0.3, 0.9, 1.0])[:, None]
+    selected = torch.rand(5, 300, generator=generator) < share
+    counts = selected.sum(dim=1)
+    ranks = (counts.double() * q).round().clamp_min(1).long()
+    by_partition = _select_by_partition(values, selected, ranks, counts)
+    assert torch.equal(by_partition, _select_by_kthvalue(values, selected, ranks, counts))
+    for row in range(5):
+        chosen = values[row][selected[row]].sort().values
+        expected = chosen[ranks[row] - 1] if len(chosen) else torch.finfo(values.dtype).tiny
+        assert by_partition[row] == expected
