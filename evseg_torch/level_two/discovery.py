@@ -227,12 +227,12 @@ def _rows(value: Tensor, weights: Tensor) -> Tensor:
 
 class _Candidates(NamedTuple):
     """One window's candidate regions for discovery: their members :math:`(R, N)` (an even subsample),
-    the start of each one's fit and the model of the cluster it came from :math:`(R, P)`, and its
-    gathered events and weights :math:`(R, n)`."""
+    the start of each one's fit :math:`(R, P)`, the contrast loss of the model of the cluster it came
+    from on it :math:`(R,)`, and its gathered events and weights :math:`(R, n)`."""
 
     members: Tensor
     start: Tensor
-    origin: Tensor
+    origin_loss: Tensor
     own: EventBatch
     weights: Tensor
 
@@ -323,7 +323,7 @@ class Discovery:
         members = params.new_zeros(len(regions), len(state.events))
         if not regions:
             empty = params.new_zeros(0, params.shape[1])
-            return _Candidates(members, empty, empty, *gather_members(state.events, members)), regions
+            return _Candidates(members, empty, empty[:, 0], *gather_members(state.events, members)), regions
         sizes = [len(region) for _, region in regions]
         rows = torch.as_tensor(np.repeat(np.arange(len(regions)), sizes), device=device)
         members[rows, torch.as_tensor(np.concatenate([region for _, region in regions]), device=device)] = 1.0
@@ -345,12 +345,12 @@ class Discovery:
             main = max(background, key=lambda row: sizes[row])
             worth[main] = bool(best[main] < losses[0, main])
         if all(worth):
-            return _Candidates(members, start, origin, own, weights), regions
+            return _Candidates(members, start, losses[0], own, weights), regions
         kept = torch.as_tensor(worth, device=device)
         candidate = _Candidates(
             members[kept],
             start[kept],
-            origin[kept],
+            losses[0][kept],
             EventBatch(own.xy[kept], own.t[kept], own.p[kept]),
             weights[kept],
         )
@@ -362,12 +362,10 @@ class Discovery:
         if not len(fitted):
             return torch.zeros(0, dtype=torch.bool, device=fitted.device)
         with torch.no_grad():
-            losses = self._region_loss(
-                candidate.own, torch.cat([candidate.origin, fitted]), candidate.weights
-            )
-            losses = losses.view(2, -1)
-            # A proposal that compensates its region less sharply than the region's own model is none.
-            keep = losses[1] <= (1.0 + self.config.discovery_min_gain) * losses[0]
+            # A proposal that compensates its region less sharply than the region's own model is none
+            # (that model's loss was scored with the starts).
+            loss = self._region_loss(candidate.own, fitted, candidate.weights)
+            keep = loss <= (1.0 + self.config.discovery_min_gain) * candidate.origin_loss
             # Event collapse (reference §5): a fit that shrinks or swells its region's area by more than
             # _MAX_AREA_CHANGE on average has piled events up, not found a motion.
             weights = candidate.weights
