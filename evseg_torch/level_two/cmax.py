@@ -243,17 +243,17 @@ class ContrastMaximization(nn.Module):
 
 class _Rows(NamedTuple):
     """What the loss of some clusters needs: their warp, weights :math:`(R, n)`, scales :math:`(R, P)`,
-    image sizes :math:`(R, 2)` in the canvas (``None``: the whole canvas) and the variances of their
-    reference images :math:`(R,)` (objectives that need one)."""
+    pixels in the canvas, bool :math:`(R, H, W)` (``None``: the whole canvas; built once, not at every
+    evaluation) and the variances of their reference images :math:`(R,)` (objectives that need one)."""
 
     warp: LinearWarp
     weights: Tensor
     scale: Tensor
-    extent: Tensor | None
+    mask: Tensor | None
     reference_variance: Tensor | None
 
     def select(self, index: Tensor) -> _Rows:
-        pick = (None if value is None else value[index] for value in (self.extent, self.reference_variance))
+        pick = (None if value is None else value[index] for value in (self.mask, self.reference_variance))
         return _Rows(self.warp.rows(index), self.weights[index], self.scale[index], *pick)
 
 
@@ -289,13 +289,13 @@ class _FitSet:
             counts = torch.tensor([len(rows) for rows, _ in fits], device=start.device)
             extent = torch.tensor(sizes, device=start.device).repeat_interleave(counts, dim=0)
         warp, weights = warp.rows(self.index), weights[self.index]
+        mask = None if extent is None else extent_mask(extent, self.size)
         reference_variance = None
         if cmax.objective in REFERENCE_OBJECTIVES:
             # A constant of the fits: the variance of each cluster's unwarped image, once.
             reference = splat_events(warp.xy, self.size, weights, cmax.sigma, extent=extent).detach()
-            mask = None if extent is None else extent_mask(extent, self.size)
             reference_variance = image_variance(reference, mask=mask)
-        self.all_rows = _Rows(warp, weights, scale[self.index], extent, reference_variance)
+        self.all_rows = _Rows(warp, weights, scale[self.index], mask, reference_variance)
         self.starts = start[self.index]
         norm = self._losses_and_grads(self.all_rows, self.starts, None)[0].abs()
         self.norm = torch.where(norm > 0, norm, torch.ones_like(norm))
@@ -323,7 +323,7 @@ class _FitSet:
             cmax.sigma,
             cmax.collapse_weight,
             rows.reference_variance,
-            rows.extent,
+            rows.mask,
             norm,
         )
         return losses, grads / rows.scale

@@ -234,7 +234,7 @@ def warped_contrast_loss_and_grad(
     sigma: float,
     collapse_weight: float,
     reference_variance: Tensor | None,
-    extent: Tensor | None = None,
+    mask: Tensor | None = None,
     divisor: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     r""":func:`warped_contrast_loss` of R clusters and its gradient in their parameters, without autograd.
@@ -248,8 +248,11 @@ def warped_contrast_loss_and_grad(
         warp: the clusters' warps, events :math:`(R, n)`.
         params: :math:`(R, P)`.
         weights: :math:`(R, n)`.
-        sensor_size, objective, sigma, collapse_weight, reference_variance, extent: as in
+        sensor_size, objective, sigma, collapse_weight, reference_variance: as in
             :func:`warped_contrast_loss`, for R clusters.
+        mask: optional bool :math:`(R, H, W)`, each cluster's pixels of the ``sensor_size`` canvas (the
+            :func:`~evseg_torch.level_two.iwe.extent_mask` of ``warped_contrast_loss``'s ``extent``,
+            built once by a caller that evaluates the same clusters many times).
         divisor: optional :math:`(R,)`; the losses are divided by it (each fit's normalisation).
 
     Returns:
@@ -264,7 +267,7 @@ def warped_contrast_loss_and_grad(
             powered = clamped**collapse_weight
             votes = powered * weights
         variance, pullback = iwe_variance_and_pullback(
-            warp.warped_from(moved), votes, sensor_size, sigma, extent
+            warp.warped_from(moved), votes, sensor_size, sigma, mask
         )
         seed = -torch.ones_like(variance)
         if objective in REFERENCE_OBJECTIVES:

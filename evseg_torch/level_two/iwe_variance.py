@@ -79,14 +79,16 @@ def centred_variance(image: Tensor, mask: Tensor | None = None) -> tuple[Tensor,
 
 
 def iwe_variance_and_pullback(
-    xy: Tensor, weights: Tensor, size: tuple[int, int], sigma: float, extent: Tensor | None = None
+    xy: Tensor, weights: Tensor, size: tuple[int, int], sigma: float, mask: Tensor | None = None
 ) -> tuple[Tensor, Callable[[Tensor], tuple[Tensor, Tensor]]]:
     """:func:`iwe_variance` without autograd: the variances and the map of their gradient back to the
     events, for callers that chain the gradient by hand (the fits' evaluations,
     :func:`~evseg_torch.level_two.contrast.warped_contrast_loss_and_grad`).
 
     Args:
-        xy, weights, size, sigma, extent: as in :func:`iwe_variance`.
+        xy, weights, size, sigma: as in :func:`iwe_variance`.
+        mask: optional bool :math:`(R, H, W)`, each image's pixels of the canvas: the
+            :func:`~evseg_torch.level_two.iwe.extent_mask` of :func:`iwe_variance`'s ``extent``.
 
     Returns:
         ``(variance, pullback)``: the variances :math:`(R,)`, and a function of the gradient
@@ -95,22 +97,20 @@ def iwe_variance_and_pullback(
     """
     corner, taps = bilinear_taps(xy, weights, *size)
     image, index = scatter_taps(corner, taps, weights.shape, *size)
-    inside = None if extent is None else extent_mask(extent, size)
-    if inside is not None:
-        image = image * inside
-    variance, deviation, count = centred_variance(gaussian_blur(image, sigma), inside)
+    if mask is not None:
+        image = image * mask
+    variance, deviation, count = centred_variance(gaussian_blur(image, sigma), mask)
     fraction = xy - xy.floor()
 
     def pullback(grad: Tensor) -> tuple[Tensor, Tensor]:
-        height, width = size
+        width = size[1]
         pixels = count if isinstance(count, int) else count[:, None, None]
         # The deviations sum to zero over each image, so the mean carries no gradient.
         grad_image = gaussian_blur(deviation * (2 * grad[:, None, None] / pixels), sigma)
-        if inside is not None:
-            grad_image = grad_image * inside
-        padded = grad_image.new_zeros(grad_image.shape[0], height + 4, width + 4)
-        padded[:, 2 : height + 2, 2 : width + 2] = grad_image
-        flat = padded.flatten()
+        if mask is not None:
+            grad_image = grad_image * mask
+        # The layout of scatter_taps' images: 2 pixels of padding each side.
+        flat = torch.nn.functional.pad(grad_image, (2, 2, 2, 2)).flatten()
         stride = width + 4
         g00, g01 = read_flat(flat, index), read_flat(flat, index + 1)
         g10, g11 = read_flat(flat, index + stride), read_flat(flat, index + stride + 1)
@@ -128,7 +128,8 @@ def iwe_variance_and_pullback(
 class _IWEVariance(torch.autograd.Function):
     @staticmethod
     def forward(ctx, xy: Tensor, weights: Tensor, size: tuple[int, int], sigma: float, extent):
-        variance, ctx.pullback = iwe_variance_and_pullback(xy.detach(), weights.detach(), size, sigma, extent)
+        mask = None if extent is None else extent_mask(extent, size)
+        variance, ctx.pullback = iwe_variance_and_pullback(xy.detach(), weights.detach(), size, sigma, mask)
         return variance
 
     @staticmethod

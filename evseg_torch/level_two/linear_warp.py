@@ -100,7 +100,20 @@ def _apply(operator: Tensor, params: Tensor) -> Tensor:
     """Per-event ``operator @ params``: :math:`(P, ..., N, 2)`, :math:`(..., P)` -> :math:`(..., N, 2)`."""
     if params.ndim == 0 or params.shape[-1] != operator.shape[0]:
         raise ShapeError(f"params must be (..., {operator.shape[0]}), got {tuple(params.shape)}")
-    return _LinearMap.apply(operator, params)
+    if torch.is_grad_enabled() and (operator.requires_grad or params.requires_grad):
+        return _LinearMap.apply(operator, params)
+    # Nothing to differentiate (the fits' evaluations, hundreds per window): the product alone, without
+    # an autograd.Function's call.
+    return _product(operator, params)
+
+
+def _product(operator: Tensor, params: Tensor) -> Tensor:
+    # A sum over the few parameters of contiguous slices: 3x faster than matmul/einsum, which run one
+    # tiny product per event or per cluster.
+    product = operator[0] * params[..., 0, None, None]
+    for index in range(1, operator.shape[0]):
+        product = torch.addcmul(product, operator[index], params[..., index, None, None])
+    return product
 
 
 class _LinearMap(torch.autograd.Function):
@@ -113,12 +126,7 @@ class _LinearMap(torch.autograd.Function):
     @staticmethod
     def forward(ctx, operator: Tensor, params: Tensor) -> Tensor:
         ctx.save_for_backward(operator, params)
-        # A sum over the few parameters of contiguous slices: 3x faster than matmul/einsum, which run
-        # one tiny product per event or per cluster.
-        product = operator[0] * params[..., 0, None, None]
-        for index in range(1, operator.shape[0]):
-            product = torch.addcmul(product, operator[index], params[..., index, None, None])
-        return product
+        return _product(operator, params)
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, Tensor | None]:
