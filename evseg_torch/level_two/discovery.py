@@ -47,7 +47,7 @@ from evseg_torch.events import EventBatch
 from evseg_torch.level_two.cmax import ContrastMaximization
 from evseg_torch.level_two.contrast import contrast_loss, warp_area_element
 from evseg_torch.level_two.crops import gather_members
-from evseg_torch.level_two.window_state import WindowState, subsample
+from evseg_torch.level_two.window_state import Step, WindowState, subsample
 from evseg_torch.motion import MotionModel
 
 __all__ = ["Discovery", "bisect", "candidate_regions", "centroid_velocity", "recentred", "translation_params"]
@@ -306,9 +306,9 @@ class Discovery:
                 state.proposed_from = state.params.shape[0]
                 state.params = torch.cat([state.params, proposed])
                 state.rounds_left = max(state.rounds_left, 1) + 1
-                state.step = "label"
+                state.step = Step.LABEL
             else:
-                state.step = "stop"
+                state.step = Step.STOP
 
     def _proposal_starts(
         self, state: WindowState, regions: list[tuple[int, np.ndarray]]

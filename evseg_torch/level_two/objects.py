@@ -42,7 +42,7 @@ import torch
 
 from evseg_torch.config import LevelTwoConfig
 from evseg_torch.level_two.iwe import warp_events
-from evseg_torch.level_two.window_state import WindowState, site_majority
+from evseg_torch.level_two.window_state import Step, WindowState, site_majority
 from evseg_torch.motion import MotionModel
 
 __all__ = [
@@ -307,13 +307,13 @@ class ObjectPhase:
     def __init__(self, model: MotionModel, sensor_size: tuple[int, int], config: LevelTwoConfig) -> None:
         self.model, self.sensor_size, self.config = model, sensor_size, config
 
-    def next_step(self, state: WindowState) -> str:
+    def next_step(self, state: WindowState) -> Step:
         """What follows a settled labelling once discovery is done: the object phase
         (:mod:`~evseg_torch.level_two.objects`). Its first step labels again with the support term, when
         some event lies outside its own cluster's support; later ones split clusters of separate objects
         and refit the parts, ``object_splits`` times at most; then the window stops."""
         if not self.config.objects:
-            return "stop"
+            return Step.STOP
         if not state.objects_on:
             state.objects_on = True
             support = self.support_cost(state)
@@ -325,12 +325,12 @@ class ObjectPhase:
                 state.node_cost = state.node_cost[:, state.keep] + support
                 state.costs_ready = True
                 state.rounds_left = max(state.rounds_left, 1)
-                return "label"
+                return Step.LABEL
         if state.splits_left > 0 and self.split(state):
             state.splits_left -= 1
             state.rounds_left = max(state.rounds_left, 1)
-            return "refit"
-        return "stop"
+            return Step.REFIT
+        return Step.STOP
 
     def compensated(self, state: WindowState) -> np.ndarray:
         """Every event of the window compensated by every model of its pool, :math:`(K, N, 2)`, on the CPU."""

@@ -51,6 +51,7 @@ from evseg_torch.level_two.iwe import splat_events, warp_events
 from evseg_torch.level_two.objects import ObjectPhase
 from evseg_torch.level_two.window_state import (
     StageClock,
+    Step,
     WindowState,
     changed_fraction,
     chunks,
@@ -331,7 +332,7 @@ class GraphCutContrastSegmenter(nn.Module):
                 state.costs_ready = False
                 self._label(state)
                 clock.lap("labelling", [state])
-            proposing = [state for state in active if state.step == "propose"]
+            proposing = [state for state in active if state.step is Step.PROPOSE]
             if proposing:
                 self.discovery.propose(select_windows(batch, proposing), proposing)
                 clock.lap("discovery", proposing)
@@ -340,12 +341,14 @@ class GraphCutContrastSegmenter(nn.Module):
             for max_iter, first in ((config.max_iter, True), (warm_max_iter, False)):
                 # Only the first refit of a window starts from the initial pool (see warm_max_iter).
                 chosen = [
-                    state for state in active if state.step == "refit" and (len(state.history) == 1) == first
+                    state
+                    for state in active
+                    if state.step is Step.REFIT and (len(state.history) == 1) == first
                 ]
                 if chosen:
                     self._refit(max_iter, select_windows(batch, chosen), chosen)
                     clock.lap("refit", chosen)
-            active = [state for state in active if state.step != "stop"]
+            active = [state for state in active if state.step is not Step.STOP]
         results = self._results(batch, states)
         clock.lap("images", states)
         return [
@@ -418,10 +421,10 @@ class GraphCutContrastSegmenter(nn.Module):
         state.history.append(result.energy)
         done = converged or state.rounds_left == 0
         if not done:
-            state.step = "refit"
+            state.step = Step.REFIT
         elif state.discoveries_left > 0:
             state.discoveries_left -= 1
-            state.step = "propose"
+            state.step = Step.PROPOSE
         else:
             state.step = self.object_phase.next_step(state)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 import torch
@@ -25,6 +26,15 @@ from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.motion import MotionModel
 
 
+class Step(Enum):
+    """What a window does next in level two's block-coordinate descent."""
+
+    LABEL = "label"  # label again (with new proposals, or the object phase's support term)
+    REFIT = "refit"  # refit every cluster's model to its events, then label
+    PROPOSE = "propose"  # discovery: propose models for candidate regions, then label
+    STOP = "stop"  # the window is done
+
+
 @dataclass
 class WindowState:
     """One window's block-coordinate descent as the segmenter steps it, round by round.
@@ -32,8 +42,7 @@ class WindowState:
     ``sites`` maps each event to its graph-cut node (the event itself without sites), ``xy`` holds its
     integer pixels on the CPU (for discovery), ``event_cost`` the last data costs :math:`(N, K)` and
     ``node_cost`` their sums per node for the graph cut (``costs_ready`` when they are set for the next
-    labelling already); ``step`` is what follows the last labelling: ``"refit"``, ``"propose"``
-    (discovery), ``"label"`` (again, with proposals or the object phase's support) or ``"stop"``.
+    labelling already); ``step`` (:class:`Step`) is what follows the last labelling.
     ``objects_on`` once the object phase has begun, ``splits_left`` its splits still allowed, ``regions``
     the events of each proposal (its first support).
     """
@@ -59,7 +68,7 @@ class WindowState:
     event_cost: Tensor | None = None
     node_cost: np.ndarray | None = None
     keep: np.ndarray | None = None
-    step: str = "label"
+    step: Step = Step.LABEL
 
 
 STAGES = ("graph", "data_term", "labelling", "refit", "discovery", "images")
