@@ -302,6 +302,85 @@ def adam(
     return torch.as_tensor(x, device=start.device)
 
 
+NewtonEvaluate = Callable[[Tensor, Tensor, int], tuple[Tensor, Tensor | None, Tensor | None]]
+"""``evaluate(rows, x, order)``: the losses :math:`(R,)` of problems ``rows`` at ``x`` :math:`(R, P)`, with
+their gradients :math:`(R, P)` for ``order >= 1`` and Hessians :math:`(R, P, P)` for ``order == 2``."""
+
+_NEWTON_HALVINGS = 8  # trials of a Newton step's line search: 1, 1/2, ..., 1/128 of the step
+
+
+def newton(
+    evaluate: NewtonEvaluate,
+    start: Tensor,
+    *,
+    max_iter: int = 8,
+    max_step: float = 4.0,
+    tol: float = 1e-2,
+) -> Tensor:
+    """Minimise C independent problems by Newton steps with a backtracking line search.
+
+    Each step solves with the Hessian's eigenvalues taken by magnitude and floored at a thousandth of
+    the largest (a direction of descent even where the loss curves down, as away from a maximum of
+    contrast), its largest coordinate capped at ``max_step``; the step is halved until the loss
+    decreases sufficiently (Armijo), at most :data:`_NEWTON_HALVINGS` times. Every trial is evaluated
+    with its Hessian, so an accepted one starts the next step. A problem stops after ``max_iter``
+    steps, when a step's largest coordinate is below ``tol``, or when no halving decreases the loss.
+
+    Args:
+        evaluate: see :data:`NewtonEvaluate`; needs a twice-differentiable loss.
+        start: starting values :math:`(C, P)`.
+        max_iter: steps per problem.
+        max_step: the largest change of a coordinate in one step.
+        tol: a problem whose step moves no coordinate by more than this stops.
+
+    Returns:
+        The final values :math:`(C, P)`, on the device and in the dtype of ``start``.
+    """
+    device, dtype = start.device, start.dtype
+
+    def evaluations(rows: np.ndarray, x: np.ndarray):
+        values = evaluate(torch.as_tensor(rows, device=device), torch.as_tensor(x, device=device), 2)
+        return (value.detach().to(dtype).cpu().numpy() for value in values)
+
+    x = _as_array(start)
+    loss, grad, hess = evaluations(np.arange(len(x)), x)
+    running = np.isfinite(loss) & np.isfinite(grad).all(axis=1)
+    for _ in range(max_iter):
+        rows = np.flatnonzero(running)
+        if not len(rows):
+            break
+        direction = _newton_direction(grad[rows], hess[rows])
+        direction *= np.minimum(1.0, max_step / np.maximum(_largest(direction), 1e-30))[:, None]
+        slope = _dot(grad[rows], direction)
+        step = np.ones(len(rows), dtype=x.dtype)
+        searching = np.ones(len(rows), dtype=bool)
+        for _ in range(_NEWTON_HALVINGS):
+            trying = np.flatnonzero(searching)
+            if not len(trying):
+                break
+            trial = x[rows[trying]] + step[trying, None] * direction[trying]
+            trial_loss, trial_grad, trial_hess = evaluations(rows[trying], trial)
+            accept = trial_loss <= loss[rows[trying]] + _ARMIJO * step[trying] * slope[trying]
+            done = rows[trying[accept]]
+            x[done], loss[done] = trial[accept], trial_loss[accept]
+            grad[done], hess[done] = trial_grad[accept], trial_hess[accept]
+            searching[trying[accept]] = False
+            step[trying[~accept]] *= 0.5
+        moved = _largest(step[:, None] * direction)
+        running[rows] = ~searching & (moved > tol)
+    return torch.as_tensor(x, device=start.device)
+
+
+def _newton_direction(grad: np.ndarray, hess: np.ndarray) -> np.ndarray:
+    """``-|H|^{-1} g`` per row, ``|H|`` the Hessian with its eigenvalues' magnitudes, floored."""
+    values, vectors = np.linalg.eigh(0.5 * (hess + np.swapaxes(hess, -1, -2)))
+    magnitude = np.abs(values)
+    floor = 1e-3 * magnitude.max(axis=-1, keepdims=True)
+    magnitude = np.maximum(magnitude, np.maximum(floor, np.finfo(grad.dtype).tiny))
+    along = np.einsum("rpk,rp->rk", vectors, grad) / magnitude
+    return -np.einsum("rpk,rk->rp", vectors, along)
+
+
 def _as_array(start: Tensor) -> np.ndarray:
     """A NumPy copy of the starting values, in their dtype."""
     return start.detach().cpu().numpy().copy()
