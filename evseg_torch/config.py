@@ -282,8 +282,6 @@ class LevelTwoConfig(_Section):
         discovery_min_gain: a proposal is kept only if it raises its region's contrast by at least this
             fraction over the region's own cluster's model (0: it must not lower it).
         discovery_max_iter: optimiser iterations of each proposal's contrast-maximisation fit.
-        discovery_optimizer: the optimiser of the proposals' fits (as ``optimizer``); ``newton`` fits
-            a Gaussian splat's contrast by Newton steps (:mod:`evseg_torch.level_two.smooth_contrast`).
         objects: a non-background cluster is one object (beyond the paper; see
             :mod:`evseg_torch.level_two.objects`): each label pays ``object_support_cost`` per event
             compensated outside its support, and settled clusters of separate object groups are split;
@@ -333,7 +331,6 @@ class LevelTwoConfig(_Section):
     discovery_max_proposals: int = _setting(8, at_least=1)
     discovery_min_gain: float = _setting(0.0, at_least=0)
     discovery_max_iter: int = _setting(20, at_least=1)
-    discovery_optimizer: str = _setting("lbfgs", choices=_Names("evseg_torch.level_two.cmax", "OPTIMIZERS"))
     soft_temperature: float = _setting(20.0, above=0)
     objects: bool = True
     object_support_cost: float = _setting(64.0, at_least=0)

@@ -8,7 +8,6 @@ of a call are one batched problem of the solvers of :mod:`~evseg_torch.level_two
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
@@ -28,11 +27,10 @@ from evseg_torch.level_two.contrast import (
 from evseg_torch.level_two.crops import fit_crops, gather_members
 from evseg_torch.level_two.iwe import extent_mask, splat_events
 from evseg_torch.level_two.linear_warp import LinearWarp
-from evseg_torch.level_two.smooth_contrast import splat_contrast_terms
-from evseg_torch.level_two.solver import adam, lbfgs, newton
+from evseg_torch.level_two.solver import adam, lbfgs
 from evseg_torch.motion import MotionModel
 
-OPTIMIZERS = ("lbfgs", "adam", "newton")
+OPTIMIZERS = ("lbfgs", "adam")
 """The refits' optimisers (:class:`ContrastMaximization`)."""
 
 
@@ -65,11 +63,7 @@ class ContrastMaximization(nn.Module):
         model: the motion model.
         sensor_size: ``(H, W)``; defaults to ``model.sensor_size``.
         objective: a key of :data:`CONTRAST_OBJECTIVES`.
-        optimizer: ``"lbfgs"`` (L-BFGS, :func:`~evseg_torch.level_two.solver.lbfgs`), ``"adam"``, or
-            ``"newton"`` (:func:`~evseg_torch.level_two.solver.newton`), which needs curvature and so
-            maximises the variance of a Gaussian splat of the events instead of the bilinear, blurred
-            image's (:mod:`~evseg_torch.level_two.smooth_contrast`; the Gaussian's variance is the
-            blur's plus the bilinear vote's 1/6 px², ``objective`` ``"variance"`` only).
+        optimizer: ``"lbfgs"`` (L-BFGS, :func:`~evseg_torch.level_two.solver.lbfgs`) or ``"adam"``.
         max_iter: L-BFGS iterations, or Adam steps.
         lr: step size in conditioned units (pixels); ``None`` means 1 for L-BFGS, 0.1 for Adam.
         sigma: Gaussian blur of the IWEs in pixels (EMSGC: 1).
@@ -114,8 +108,6 @@ class ContrastMaximization(nn.Module):
         check_objective(objective)
         if optimizer not in OPTIMIZERS:
             raise ConfigError(f"optimizer must be {' or '.join(map(repr, OPTIMIZERS))}, got {optimizer!r}")
-        if optimizer == "newton" and objective != "variance":
-            raise ConfigError(f"the newton optimizer fits the variance objective only, got {objective!r}")
         if lr is not None and not lr > 0:
             raise ConfigError(f"lr must be > 0, got {lr}")
         if not collapse_weight >= 0:
@@ -234,23 +226,10 @@ class ContrastMaximization(nn.Module):
             ]
             return torch.cat([loss for loss, _ in parts]), torch.cat([grad for _, grad in parts])
 
+        minimise = lbfgs if self.optimizer == "lbfgs" else adam
         conditioned = torch.empty_like(start)
         index = torch.cat([fit_set.index for fit_set in fit_sets])
         starts = torch.cat([fit_set.starts for fit_set in fit_sets])
-        if self.optimizer == "newton":
-
-            def evaluate_terms(rows: Tensor, conditioned: Tensor, order: int):
-                cuts = [0, *torch.searchsorted(rows, torch.tensor(ends, device=rows.device)).tolist()]
-                parts = [
-                    fit_set.evaluate_terms(rows[begin:end] - first, conditioned[begin:end], order)
-                    for fit_set, begin, end, first in zip(fit_sets, cuts, cuts[1:], [0, *ends], strict=False)
-                    if end > begin
-                ]
-                return tuple(torch.cat(terms) for terms in zip(*parts, strict=True))
-
-            conditioned[index] = newton(evaluate_terms, starts, max_iter=max_iter)
-            return conditioned
-        minimise = lbfgs if self.optimizer == "lbfgs" else adam
         conditioned[index] = minimise(evaluate, starts, max_iter=max_iter, lr=self.lr, tol=self.tol)
         return conditioned
 
@@ -318,11 +297,6 @@ class _FitSet:
             reference_variance = image_variance(reference, mask=mask)
         self.all_rows = _Rows(warp, weights, scale[self.index], mask, reference_variance)
         self.starts = start[self.index]
-        if cmax.optimizer == "newton":
-            self.newton_norm = torch.ones_like(self.starts[:, 0])
-            norm = self.evaluate_terms(torch.arange(len(self.index), device=start.device), self.starts, 0)[0]
-            self.newton_norm = torch.where(norm != 0, norm.abs(), torch.ones_like(norm))
-            return
         norm = self._losses_and_grads(self.all_rows, self.starts, None)[0].abs()
         self.norm = torch.where(norm > 0, norm, torch.ones_like(norm))
 
@@ -334,27 +308,6 @@ class _FitSet:
         else:
             chosen, norm = self.all_rows.select(rows), self.norm[rows]
         return self._losses_and_grads(chosen, conditioned.detach(), norm)
-
-    def evaluate_terms(self, rows: Tensor, conditioned: Tensor, order: int) -> tuple[Tensor, ...]:
-        """The normalised losses of clusters ``rows`` under the Gaussian splat's contrast (the newton
-        optimizer's), with their gradients and Hessians in the conditioned values up to ``order``."""
-        chosen, norm = self.all_rows.select(rows), self.newton_norm[rows]
-        cmax = self.cmax
-        terms = splat_contrast_terms(
-            chosen.warp,
-            conditioned.detach() / chosen.scale,
-            chosen.weights,
-            self.size,
-            math.sqrt(cmax.sigma**2 + 1.0 / 6.0),
-            cmax.collapse_weight,
-            chosen.mask,
-            norm,
-            order,
-        )
-        scale = chosen.scale
-        conditioned_terms = (terms[0], None if terms[1] is None else terms[1] / scale)
-        hess = None if terms[2] is None else terms[2] / (scale[:, :, None] * scale[:, None, :])
-        return (*conditioned_terms, hess)[: order + 1]
 
     def _losses_and_grads(
         self, rows: _Rows, conditioned: Tensor, norm: Tensor | None

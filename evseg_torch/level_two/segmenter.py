@@ -178,16 +178,9 @@ class GraphCutContrastSegmenter(nn.Module):
             "sigma": cfg.sigma,
             "collapse_weight": cfg.collapse_weight,
         }
-        # One contrast maximisation for the refits and discovery's fits (unless their optimisers differ);
-        # each call gives its iterations.
+        # One contrast maximisation for the refits and discovery's fits; each call gives its iterations.
         self.refit = ContrastMaximization(self.model, self.sensor_size, max_iter=cfg.max_iter, **refit)
-        propose = self.refit
-        if cfg.discovery_optimizer != cfg.optimizer:
-            refit["optimizer"] = cfg.discovery_optimizer
-            propose = ContrastMaximization(
-                self.model, self.sensor_size, max_iter=cfg.discovery_max_iter, **refit
-            )
-        self.discovery = Discovery(self.model, self.sensor_size, cfg, propose)
+        self.discovery = Discovery(self.model, self.sensor_size, cfg, self.refit)
         self.object_phase = ObjectPhase(self.model, self.sensor_size, cfg)
 
     @classmethod
