@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
+from bench_quality import add_overrides  # the benchmarks' one KEY=VALUE option (run as a script)
 
 from evseg_torch.cli import _seed_range
 from evseg_torch.config import SegmenterConfig, replace_config
@@ -77,17 +77,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hard", type=_seed_range, default=list(range(60)), help="hard-family seeds")
     parser.add_argument("--own", type=_seed_range, default=list(range(20)), help="default-scene seeds")
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="flat config override, e.g. objects=false",
-    )
+    add_overrides(parser, "flat config override, e.g. objects=false")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    overrides = {key: yaml.safe_load(value) for key, _, value in (item.partition("=") for item in args.set)}
-    config = replace_config(SegmenterConfig(), initial_models="replace", **overrides)
+    config = replace_config(SegmenterConfig(), initial_models="replace", **dict(args.set))
     segmenter = CascadedSegmenter((180, 240), config)
     print(f"{'set':<6} {'accuracy':>8} {'IoU':>6} {'detect':>6} {'|count|':>7}")
     sets = [("hard", "hard", args.hard), ("own", None, args.own)]

@@ -61,6 +61,13 @@ def override(text: str) -> tuple[str, object]:
     return key, yaml.safe_load(value)
 
 
+def add_overrides(parser: argparse.ArgumentParser, what: str) -> None:
+    """The benchmarks' ``--set KEY=VALUE`` option (repeatable; ``args.set`` is a list of pairs)."""
+    parser.add_argument(
+        "--set", type=override, action="append", default=[], metavar="KEY=VALUE", help=f"{what}; repeatable"
+    )
+
+
 def measure(args) -> dict:
     """The sets' results, means over the pipeline seeds; a set is ``None`` when its data is absent."""
     overrides = dict(args.set)
@@ -131,14 +138,7 @@ def main() -> int:
         default=bundled_config("eed"),
         help="YAML config of the EED set (default: the bundled eed.yaml)",
     )
-    parser.add_argument(
-        "--set",
-        type=override,
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="flat config override of every set, e.g. lambda_smooth=40; repeatable",
-    )
+    add_overrides(parser, "flat config override of every set, e.g. lambda_smooth=40")
     parser.add_argument(
         "--seeds", type=_seed_range, default=list(range(20)), help="synthetic scene seeds (default 0-19)"
     )

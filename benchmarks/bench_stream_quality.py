@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 import torch
-from bench_quality import override
+from bench_quality import add_overrides
 
 from evseg_torch.cli import _seed_range
 from evseg_torch.config import SegmenterConfig, replace_config
@@ -65,14 +65,7 @@ def main() -> None:
     parser.add_argument(
         "--pipeline-seeds", type=_seed_range, default=[0], help="pipeline seeds, e.g. 0-2 (default 0)"
     )
-    parser.add_argument(
-        "--set",
-        type=override,
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="flat config override, e.g. initial_models=replace; repeatable",
-    )
+    add_overrides(parser, "flat config override, e.g. initial_models=replace")
     parser.add_argument("--no-cold", action="store_true", help="stream only (compare variants' streams)")
     args = parser.parse_args()
     torch.set_num_threads(1)
