@@ -422,16 +422,31 @@ class CascadedSegmenter(nn.Module):
             events, self.sensor_size, t_ref=t_ref_us, **cfg.features.correspondence_settings(), **guided
         )
         after_features = time.perf_counter()
+        settings = cfg.level_one.progressive_x_settings()
         fitted = progressive_x(
             tracks.src,
             tracks.dst,
             tracks.dt,
             self.motion,
-            **cfg.level_one.progressive_x_settings(),
+            **settings,
             initial_models=initial_models,
             # Seeded afresh for every window: a window's labels never depend on the calls before it.
             rng=np.random.default_rng(cfg.seed),
         )
+        # Further runs at other thresholds only add hypotheses; the tracks keep the first run's labels.
+        extra = [
+            progressive_x(
+                tracks.src,
+                tracks.dst,
+                tracks.dt,
+                self.motion,
+                **{**settings, "threshold": threshold},
+                rng=np.random.default_rng(cfg.seed),
+            ).params
+            for threshold in cfg.level_one.extra_thresholds
+        ]
+        if extra:
+            fitted = replace(fitted, params=np.concatenate([fitted.params, *extra]))
         return tracks, fitted, 1e3 * (after_features - start)
 
     def _device_dtype(self) -> tuple[torch.device, torch.dtype]:

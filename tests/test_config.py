@@ -132,6 +132,8 @@ def test_dataset_configs_list_only_their_overrides(name):
         (LevelOneConfig, {"max_iters": 10.0}, "'level_one.max_iters'.*expected an integer"),
         (LevelOneConfig, {"quality": "eq4"}, "'level_one.quality'.*'progressive_x', 'paper'"),
         (LevelOneConfig, {"initial_models": "merge"}, "'level_one.initial_models'"),
+        (LevelOneConfig, {"extra_thresholds": [1.25, -1]}, r"'level_one.extra_thresholds'.*> 0"),
+        (LevelOneConfig, {"extra_thresholds": 1.25}, "'level_one.extra_thresholds'.*expected a list"),
         (FeatureConfig, {"sub_window": 0.6}, "'features.sub_window'"),
         (FeatureConfig, {"lk_win_size": 2}, "'features.lk_win_size'"),
         (WindowConfig, {"window_ms": 0}, "'window.window_ms'"),
@@ -151,6 +153,7 @@ def test_values_are_normalised():
     config = LevelTwoConfig(lambda_smooth=np.int64(40), max_iter=np.int64(4), lr=None)
     assert type(config.lambda_smooth) is float and type(config.max_iter) is int and config.lr is None
     assert SegmenterConfig(focal=[200, 210]).focal == (200.0, 210.0)
+    assert LevelOneConfig(extra_thresholds=[1, 1.25]).extra_thresholds == (1.0, 1.25)
 
 
 def test_lr_null_from_yaml_is_the_optimisers_default(tmp_path):

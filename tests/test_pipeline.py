@@ -5,9 +5,12 @@ import pytest
 import torch
 
 from evseg_torch import CascadedSegmenter, EventFormatError, Segmentation
+from evseg_torch.config import SegmenterConfig
 from evseg_torch.errors import ConfigError, ModelError
 from evseg_torch.events import EventBatch, batch_windows, to_array, to_torch
+from evseg_torch.level_one.progressive_x import progressive_x
 from evseg_torch.metrics import labelling_accuracy
+from evseg_torch.motion import make_motion_model
 from evseg_torch.synthetic import make_scene
 
 SIZE = (90, 120)
@@ -226,6 +229,32 @@ def test_given_models_replace_or_augment_level_one(scene, result):
         )
     with pytest.raises(ConfigError, match="initial_models"):
         CascadedSegmenter(sensor_size=SIZE, initial_models="skip")
+
+
+def test_extra_thresholds_join_their_pools_to_level_ones(scene, result):
+    joined = CascadedSegmenter(sensor_size=SIZE, extra_thresholds=[1.25, 1.0])(scene.events)
+    tracks = result.feature_tracks
+    settings = SegmenterConfig().level_one.progressive_x_settings()
+    first = len(result.level_one_models)
+    np.testing.assert_array_equal(joined.level_one_models[:first], result.level_one_models)
+    np.testing.assert_array_equal(joined.feature_labels, result.feature_labels)
+    rest = [
+        progressive_x(
+            tracks.src,
+            tracks.dst,
+            tracks.dt,
+            make_motion_model("affine4", SIZE),
+            **{**settings, "threshold": t},
+            rng=np.random.default_rng(0),
+        ).params
+        for t in (1.25, 1.0)
+    ]
+    expected = np.concatenate([result.level_one_models, *rest])
+    np.testing.assert_allclose(joined.level_one_models, expected, rtol=1e-12)
+    with pytest.raises(ConfigError, match="extra_thresholds"):
+        CascadedSegmenter(sensor_size=SIZE, extra_thresholds=[1.25, 0.0])
+    with pytest.raises(ConfigError, match="extra_thresholds"):
+        CascadedSegmenter(sensor_size=SIZE, extra_thresholds=1.25)
 
 
 def test_segment_batch_equals_windows_one_by_one(scene):
