@@ -500,12 +500,10 @@ def _coerce(value, hint, key: str):
 def _coerce_one(value, hint):
     if typing.get_origin(hint) is tuple:
         kinds = typing.get_args(hint)
-        if len(kinds) == 2 and kinds[1] is Ellipsis:  # tuple[X, ...]: any number of X
-            if not isinstance(value, list | tuple):
-                raise TypeError("expected a list")
-            kinds = (kinds[0],) * len(value)
-        if not isinstance(value, list | tuple) or len(value) != len(kinds):
-            raise TypeError(f"expected a list of {len(kinds)} values")
+        any_length = kinds[-1] is Ellipsis  # tuple[X, ...]
+        if not isinstance(value, list | tuple) or not (any_length or len(value) == len(kinds)):
+            raise TypeError("expected a list" if any_length else f"expected a list of {len(kinds)} values")
+        kinds = (kinds[0],) * len(value) if any_length else kinds
         return tuple(_coerce_one(v, k) for v, k in zip(value, kinds, strict=True))
     if hint is bool:
         if not isinstance(value, bool):

@@ -423,28 +423,22 @@ class CascadedSegmenter(nn.Module):
         )
         after_features = time.perf_counter()
         settings = cfg.level_one.progressive_x_settings()
-        fitted = progressive_x(
-            tracks.src,
-            tracks.dst,
-            tracks.dt,
-            self.motion,
-            **settings,
-            initial_models=initial_models,
+
+        def fit(threshold: float, models) -> ProgressiveXResult:
             # Seeded afresh for every window: a window's labels never depend on the calls before it.
-            rng=np.random.default_rng(cfg.seed),
-        )
-        # Further runs at other thresholds only add hypotheses; the tracks keep the first run's labels.
-        extra = [
-            progressive_x(
+            return progressive_x(
                 tracks.src,
                 tracks.dst,
                 tracks.dt,
                 self.motion,
                 **{**settings, "threshold": threshold},
+                initial_models=models,
                 rng=np.random.default_rng(cfg.seed),
-            ).params
-            for threshold in cfg.level_one.extra_thresholds
-        ]
+            )
+
+        fitted = fit(settings["threshold"], initial_models)
+        # Further runs at other thresholds only add hypotheses; the tracks keep the first run's labels.
+        extra = [fit(threshold, None).params for threshold in cfg.level_one.extra_thresholds]
         if extra:
             fitted = replace(fitted, params=np.concatenate([fitted.params, *extra]))
         return tracks, fitted, 1e3 * (after_features - start)
