@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	# The CPU wheel these machines hold; a bare `torch` would pull a multi-GB CUDA build.
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e ".[io,viz,video,dev]"
+	$(PY) -m pip install -q -e ".[io,viz,video,fast,dev]"
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -8,6 +8,8 @@ of a call are one batched problem of the solvers of :mod:`~evseg_torch.level_two
 
 from __future__ import annotations
 
+import importlib
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -19,8 +21,10 @@ from evseg_torch.events import EventBatch, batch_of_one
 from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
 from evseg_torch.level_two.contrast import (
     DEFAULT_COLLAPSE_WEIGHT,
+    MIN_AREA,
     REFERENCE_OBJECTIVES,
     check_objective,
+    contrast_loss,
     image_variance,
     warped_contrast_loss_and_grad,
 )
@@ -32,6 +36,36 @@ from evseg_torch.motion import MotionModel
 
 OPTIMIZERS = ("lbfgs", "adam")
 """The refits' optimisers (:class:`ContrastMaximization`)."""
+
+FIT_BACKENDS = ("auto", "torch", "numba")
+"""How the fits' evaluations run (:func:`resolve_fit_backend`)."""
+
+
+def resolve_fit_backend(backend: str) -> Callable | None:
+    """The compiled evaluation of :mod:`~evseg_torch.level_two.fit_kernel` that ``backend`` asks for, or
+    ``None`` for the tensor code (:func:`~evseg_torch.level_two.contrast.warped_contrast_loss_and_grad`).
+
+    ``"torch"``: the tensor code, on every device. ``"numba"``: the compiled loop for float32 fits on the
+    CPU (the tensor code elsewhere); it needs the optional ``numba`` package. ``"auto"``: ``"numba"`` where
+    that package is installed, else ``"torch"``. The two agree up to rounding; the compiled loop is 2-9
+    times as fast per evaluation (``docs/speed.md``).
+
+    Raises:
+        ConfigError: for an unknown backend, or ``"numba"`` without the package.
+    """
+    if backend not in FIT_BACKENDS:
+        raise ConfigError(f"fit_backend must be one of {FIT_BACKENDS}, got {backend!r}")
+    if backend == "torch":
+        return None
+    try:
+        kernel = importlib.import_module("evseg_torch.level_two.fit_kernel")
+    except ImportError:
+        if backend == "numba":
+            raise ConfigError(
+                "fit_backend 'numba' needs the numba package: pip install 'evseg-torch[fast]'"
+            ) from None
+        return None
+    return kernel.loss_and_grad
 
 
 class ContrastMaximization(nn.Module):
@@ -70,6 +104,7 @@ class ContrastMaximization(nn.Module):
         collapse_weight: exponent γ of the event-collapse guard; 0 switches it off.
         tol: a cluster stops when its normalised loss changes by less than this, or (L-BFGS) when
             its step or gradient is smaller than this in conditioned units.
+        fit_backend: how the evaluations run, a key of :data:`FIT_BACKENDS` (:func:`resolve_fit_backend`).
 
     Shape:
         - Input: ``events`` an :class:`EventBatch` of N events, ``init_params`` :math:`(K, P)`,
@@ -103,9 +138,12 @@ class ContrastMaximization(nn.Module):
         sigma: float = 1.0,
         collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
         tol: float = 1e-6,
+        fit_backend: str = "auto",
     ) -> None:
         super().__init__()
         check_objective(objective)
+        self.kernel = resolve_fit_backend(fit_backend)
+        self.fit_backend = fit_backend
         if optimizer not in OPTIMIZERS:
             raise ConfigError(f"optimizer must be {' or '.join(map(repr, OPTIMIZERS))}, got {optimizer!r}")
         if lr is not None and not lr > 0:
@@ -166,6 +204,40 @@ class ContrastMaximization(nn.Module):
             )
         weights = None if weights is None else weights[None]
         return self._fit_windows(batch_of_one(events), init_params.detach()[None], weights, max_iter)[0]
+
+    def losses(self, events: EventBatch, params: Tensor, weights: Tensor) -> Tensor:
+        """The contrast loss of each cluster on the whole sensor under this module's objective, blur,
+        collapse guard and backend, without a fit (discovery scores its proposals with it).
+
+        Args:
+            events: each cluster's own events, ``xy`` :math:`(K, n, 2)` and ``t`` :math:`(K, n)`.
+            params: :math:`(K, P)`.
+            weights: :math:`(K, n)`.
+
+        Returns:
+            :math:`(K,)`, as :func:`~evseg_torch.level_two.contrast.contrast_loss` up to rounding.
+        """
+        compiled = (
+            self.kernel is not None
+            and self.objective not in REFERENCE_OBJECTIVES
+            and events.xy.device.type == "cpu"
+            and events.xy.dtype == torch.float32
+        )
+        if not compiled:
+            return contrast_loss(
+                self.model,
+                events,
+                params,
+                weights,
+                sensor_size=self.sensor_size,
+                objective=self.objective,
+                sigma=self.sigma,
+                collapse_weight=self.collapse_weight,
+            )
+        warp = LinearWarp.build(self.model, events, with_area=self.collapse_weight > 0)
+        extent = np.tile(np.array(self.sensor_size, dtype=np.int64), (len(params), 1))
+        seed = -torch.ones(len(params))
+        return self.kernel(warp, params, weights, extent, self.sigma, self.collapse_weight, MIN_AREA, seed)[0]
 
     def _fit_windows(self, events: EventBatch, init: Tensor, weights: Tensor | None, max_iter: int) -> Tensor:
         """Fit the clusters of a padded batch: ``init`` :math:`(B, K, P)`, ``weights`` :math:`(B, K, N)`."""
@@ -237,24 +309,32 @@ class ContrastMaximization(nn.Module):
         return (
             f"model={self.model.name}, sensor_size={self.sensor_size}, objective={self.objective!r}, "
             f"optimizer={self.optimizer!r}, max_iter={self.max_iter}, lr={self.lr}, sigma={self.sigma}, "
-            f"collapse_weight={self.collapse_weight}, tol={self.tol}"
+            f"collapse_weight={self.collapse_weight}, tol={self.tol}, fit_backend={self.fit_backend!r}"
         )
 
 
 class _Rows(NamedTuple):
     """What the loss of some clusters needs: their warp, weights :math:`(R, n)`, scales :math:`(R, P)`,
     pixels in the canvas, bool :math:`(R, H, W)` (``None``: the whole canvas; built once, not at every
-    evaluation) and the variances of their reference images :math:`(R,)` (objectives that need one)."""
+    evaluation), the variances of their reference images :math:`(R,)` (objectives that need one) and
+    their images' sizes, int64 :math:`(R, 2)` in NumPy (for the compiled evaluation)."""
 
     warp: LinearWarp
     weights: Tensor
     scale: Tensor
     mask: Tensor | None
     reference_variance: Tensor | None
+    extent: np.ndarray
 
     def select(self, index: Tensor) -> _Rows:
         pick = (None if value is None else value[index] for value in (self.mask, self.reference_variance))
-        return _Rows(self.warp.rows(index), self.weights[index], self.scale[index], *pick)
+        return _Rows(
+            self.warp.rows(index),
+            self.weights[index],
+            self.scale[index],
+            *pick,
+            self.extent[index.cpu().numpy()],
+        )
 
 
 class _FitSet:
@@ -284,18 +364,21 @@ class _FitSet:
         self.index = torch.cat([rows for rows, _ in fits])
         sizes = [size for _, size in fits]
         self.size = (max(height for height, _ in sizes), max(width for _, width in sizes))
+        counts = [len(rows) for rows, _ in fits]
+        own_sizes = np.repeat(np.array(sizes, dtype=np.int64), counts, axis=0)
         extent = None
         if cropped:
-            counts = torch.tensor([len(rows) for rows, _ in fits], device=start.device)
-            extent = torch.tensor(sizes, device=start.device).repeat_interleave(counts, dim=0)
+            extent = torch.as_tensor(own_sizes, device=start.device)
         warp, weights = warp.rows(self.index), weights[self.index]
+        # The compiled evaluation takes float32 fits on the CPU; the tensor code all others.
+        self.kernel = cmax.kernel if warp.xy.device.type == "cpu" and warp.xy.dtype == torch.float32 else None
         mask = None if extent is None else extent_mask(extent, self.size)
         reference_variance = None
         if cmax.objective in REFERENCE_OBJECTIVES:
             # A constant of the fits: the variance of each cluster's unwarped image, once.
             reference = splat_events(warp.xy, self.size, weights, cmax.sigma, extent=extent).detach()
             reference_variance = image_variance(reference, mask=mask)
-        self.all_rows = _Rows(warp, weights, scale[self.index], mask, reference_variance)
+        self.all_rows = _Rows(warp, weights, scale[self.index], mask, reference_variance, own_sizes)
         self.starts = start[self.index]
         norm = self._losses_and_grads(self.all_rows, self.starts, None)[0].abs()
         self.norm = torch.where(norm > 0, norm, torch.ones_like(norm))
@@ -314,6 +397,23 @@ class _FitSet:
     ) -> tuple[Tensor, Tensor]:
         """Losses (divided by ``norm``) at conditioned values and their gradients in those values."""
         cmax = self.cmax
+        if self.kernel is not None:
+            seed = -torch.ones(len(rows.weights))
+            if cmax.objective in REFERENCE_OBJECTIVES:
+                seed = seed / rows.reference_variance
+            if norm is not None:
+                seed = seed / norm
+            losses, grads = self.kernel(
+                rows.warp,
+                conditioned / rows.scale,
+                rows.weights,
+                rows.extent,
+                cmax.sigma,
+                cmax.collapse_weight,
+                MIN_AREA,
+                seed,
+            )
+            return losses, grads / rows.scale
         losses, grads = warped_contrast_loss_and_grad(
             rows.warp,
             conditioned / rows.scale,

@@ -46,7 +46,9 @@ DEFAULT_COLLAPSE_WEIGHT = LevelTwoConfig.collapse_weight
 """Default exponent γ of the area-element weights of the event-collapse guard (module docstring); the
 refits' setting ``collapse_weight`` of :class:`~evseg_torch.config.LevelTwoConfig`."""
 
-_MIN_AREA = 1e-6  # folded warps (a <= 0) keep a tiny weight and a finite gradient
+MIN_AREA = 1e-6
+"""The area element's floor in the event-collapse votes: folded warps (a <= 0) keep a tiny weight and a
+finite gradient."""
 
 
 def image_variance(iwe: Tensor, reference: Tensor | None = None, mask: Tensor | None = None) -> Tensor:
@@ -209,7 +211,7 @@ def warped_contrast_loss(
     extent of the ``sensor_size`` canvas (see :func:`~evseg_torch.level_two.iwe.splat_events`)."""
     moved = warp.moved(params)
     if collapse_weight > 0:
-        votes = area_from(moved).clamp_min(_MIN_AREA) ** collapse_weight
+        votes = area_from(moved).clamp_min(MIN_AREA) ** collapse_weight
         weights = votes if weights is None else votes * weights
     warped = warp.warped_from(moved)  # (..., n, 2)
     lead = warped.shape[:-2]
@@ -263,7 +265,7 @@ def warped_contrast_loss_and_grad(
         votes = weights
         if collapse_weight > 0:
             area = area_from(moved)
-            clamped = area.clamp_min(_MIN_AREA)
+            clamped = area.clamp_min(MIN_AREA)
             powered = clamped**collapse_weight
             votes = powered * weights
         variance, pullback = iwe_variance_and_pullback(
@@ -278,7 +280,7 @@ def warped_contrast_loss_and_grad(
         grad_moved = -grad_xy
         if collapse_weight > 0:
             # d votes / d area = weights γ a^(γ-1) where the area is above the clamp, 0 below it.
-            slope = torch.where(area >= _MIN_AREA, collapse_weight * powered / clamped, 0.0)
+            slope = torch.where(area >= MIN_AREA, collapse_weight * powered / clamped, 0.0)
             grad_area = (grad_votes * weights * slope)[..., None] * area_gradient(moved)
             grad_moved = torch.cat([grad_moved, grad_area], dim=-1)
         return seed * variance, warp.params_gradient(grad_moved)

@@ -45,7 +45,7 @@ from torch import Tensor, nn
 from evseg_torch.config import LevelTwoConfig
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.cmax import ContrastMaximization
-from evseg_torch.level_two.contrast import contrast_loss, warp_area_element
+from evseg_torch.level_two.contrast import warp_area_element
 from evseg_torch.level_two.crops import gather_members
 from evseg_torch.level_two.window_state import Step, WindowState, subsample
 from evseg_torch.motion import MotionModel
@@ -379,15 +379,7 @@ class Discovery:
         """Contrast loss of ``params`` (the same number of rows per region, a block of rows each) on the
         gathered regions' events."""
         repeats = params.shape[0] // weights.shape[0]
-        return contrast_loss(
-            self.model,
-            EventBatch(
-                events.xy.repeat(repeats, 1, 1), events.t.repeat(repeats, 1), events.p.repeat(repeats, 1)
-            ),
-            params,
-            weights.repeat(repeats, 1),
-            sensor_size=self.sensor_size,
-            objective=self.config.objective,
-            sigma=self.config.sigma,
-            collapse_weight=self.config.collapse_weight,
+        repeated = EventBatch(
+            events.xy.repeat(repeats, 1, 1), events.t.repeat(repeats, 1), events.p.repeat(repeats, 1)
         )
+        return self.fit.losses(repeated, params, weights.repeat(repeats, 1))
