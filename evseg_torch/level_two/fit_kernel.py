@@ -7,8 +7,11 @@ take the time (about 0.7 ms per evaluation, ``docs/speed.md``). :func:`loss_and_
 same in one compiled pass per cluster: the warp and the event-collapse votes, the bilinear splat, the
 separable Gaussian blur with zero padding, the variance, and the gradient back through the same steps
 (the blur is symmetric, so its own adjoint). Each cluster's image is only its extent, so a cluster's
-result does not depend on the others in a call (batched equals solo, bit for bit). Sums over pixels
-run in float64, the images in float32: the results equal the tensor code's up to rounding (tested).
+result does not depend on the others in a call (batched equals solo, bit for bit). The warped positions
+and the blur equal the tensor code's bit for bit (fused multiply-adds where torch's kernels use them);
+sums over pixels and events run in float64 over fixed lanes; the rest (the votes' ``pow``, the order of
+the splat's additions) differs by rounding: losses within about 2e-7, gradients within about 3e-5 of
+their largest component (tested, and measured in ``docs/speed.md``).
 
 Numba is an optional dependency (``pip install 'evseg-torch[fast]'``); this module is imported only
 when the backend is chosen (:func:`~evseg_torch.level_two.cmax.resolve_fit_backend`).
@@ -91,7 +94,7 @@ def blur_taps(sigma: float) -> np.ndarray:
 def _loss_and_grad(xy, maps, params, weights, extent, taps, gamma, min_area, seed, loss, grad):
     n_params, rows, n_events, n_channels = maps.shape
     moved = np.empty((n_events, n_channels), np.float32)
-    grad_moved = np.zeros((n_events, n_channels), np.float32)
+    grad_moved = np.empty((n_events, n_channels), np.float32)
     votes = np.empty(n_events, np.float32)
     for r in range(rows):
         height, width = extent[r, 0], extent[r, 1]
