@@ -185,11 +185,12 @@ class LevelOneConfig(_Section):
             them and what it adds; ``replace``: level one does not run and they are level two's pool (a
             stream then runs level one only on its first window, or after a window that kept no model).
         extra_thresholds: inlier thresholds of further Progressive-X runs on the same tracks (same seed,
-            no initial models), whose models join the pool level two starts from (beyond the paper;
-            empty by default). ``[1.25]`` finds more small objects beside similar motions: over nine
-            pipeline seeds, ``hard`` detection +3.0 points and our own scenes +1.5, but the probe's
-            cluster-count error 0.15 → 0.25 and 1.14-1.23 times the time per window
-            (``docs/objects.md``).
+            no initial models), whose models join the pool level two starts from (beyond the paper),
+            only in windows that carry no models in (a stream's later windows start from the last one's
+            objects, and there the further pools cost streamed detection). ``[1.25]`` by default, with
+            ``level_two.data_sigma`` 0.65: over pipeline seeds 0-8 against none and 0.7, detection on
+            ``hard`` 0.694 -> 0.739, our own scenes 0.954 -> 0.977, the probe 0.846 -> 0.895, EED and
+            streamed windows equal; cold windows take 1.16-1.30 times as long (``docs/objects.md``).
     """
 
     where: ClassVar[str] = "level_one."
@@ -206,7 +207,7 @@ class LevelOneConfig(_Section):
     quality: str = _setting("progressive_x", choices=_Names("evseg_torch.level_one.gc_ransac", "QUALITIES"))
     reuse_models: bool = True
     initial_models: str = _setting("augment", choices=("augment", "replace"))
-    extra_thresholds: tuple[float, ...] = _setting((), above=0)
+    extra_thresholds: tuple[float, ...] = _setting((1.25,), above=0)
 
     def progressive_x_settings(self) -> dict:
         """The keywords of :func:`~evseg_torch.level_one.progressive_x.progressive_x` that this section
@@ -229,7 +230,7 @@ class LevelTwoConfig(_Section):
         lambda_data: weight λ_D of the data term (EMSGC: 1).
         lambda_smooth: Potts weight λ_P per unit edge weight (EMSGC: 25–43).
         lambda_label: label cost λ_M per model in use, the MDL term (EMSGC: 8000; 4000 on EED
-            occlusions), in windows of up to ``label_cost_events`` events. 6000 by default, with
+            occlusions), in windows of up to ``label_cost_events`` events. 6000 by default, chosen with
             ``data_sigma`` 0.7 (4000 with the data term's sigma of 1): with 8000 an object of ~1000
             events (5% of a synthetic window) whose level-one model starts ~1.5 px off loses its cluster
             in the first labelling, before a refit can sharpen it.
@@ -240,7 +241,8 @@ class LevelTwoConfig(_Section):
         sigma: Gaussian width of the images of warped events in the refits and discovery, pixels
             (EMSGC: 1).
         data_sigma: Gaussian width of the data term's images of warped events, pixels (EMSGC: 1, as its
-            refits'; a deviation). 0.7 by default, with ``lambda_label`` 6000: a sharper image tells
+            refits'; a deviation). 0.65 by default (with ``level_one.extra_thresholds`` [1.25]; 0.7 before
+            it), with ``lambda_label`` 6000: a sharper image tells
             apart motions a pixel or two apart over the window (two touching objects, an object and a
             compromise model that also holds its neighbour), and the larger label cost keeps the
             background's slightly imprecise model from splitting for it. Over pipeline seeds 0-8, against
@@ -324,7 +326,7 @@ class LevelTwoConfig(_Section):
     n_iter_segmentation: int = _setting(3, at_least=1)
     n_iter_labeling: int = _setting(1, at_least=1)
     sigma: float = _setting(1.0, at_least=0)
-    data_sigma: float = _setting(0.7, at_least=0)
+    data_sigma: float = _setting(0.65, at_least=0)
     objective: str = _setting(
         "variance", choices=_Names("evseg_torch.level_two.contrast", "CONTRAST_OBJECTIVES")
     )

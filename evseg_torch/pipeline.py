@@ -437,8 +437,12 @@ class CascadedSegmenter(nn.Module):
             )
 
         fitted = fit(settings["threshold"], initial_models)
-        # Further runs at other thresholds only add hypotheses; the tracks keep the first run's labels.
-        extra = [fit(threshold, None).params for threshold in cfg.level_one.extra_thresholds]
+        # Further runs at other thresholds only add hypotheses; the tracks keep the first run's labels. A
+        # window that carries models in (a stream's) has hypotheses for its objects already, and there
+        # the further runs' pools cost streamed detection (docs/objects.md).
+        carried = given is not None and len(given) > 0
+        thresholds = () if carried else cfg.level_one.extra_thresholds
+        extra = [fit(threshold, None).params for threshold in thresholds]
         if extra:
             fitted = replace(fitted, params=np.concatenate([fitted.params, *extra]))
         return tracks, fitted, 1e3 * (after_features - start)

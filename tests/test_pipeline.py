@@ -231,7 +231,8 @@ def test_given_models_replace_or_augment_level_one(scene, result):
         CascadedSegmenter(sensor_size=SIZE, initial_models="skip")
 
 
-def test_extra_thresholds_join_their_pools_to_level_ones(scene, result):
+def test_extra_thresholds_join_their_pools_to_level_ones(scene):
+    result = CascadedSegmenter(sensor_size=SIZE, extra_thresholds=[])(scene.events)
     joined = CascadedSegmenter(sensor_size=SIZE, extra_thresholds=[1.25, 1.0])(scene.events)
     tracks = result.feature_tracks
     settings = SegmenterConfig().level_one.progressive_x_settings()
@@ -251,6 +252,14 @@ def test_extra_thresholds_join_their_pools_to_level_ones(scene, result):
     ]
     expected = np.concatenate([result.level_one_models, *rest])
     np.testing.assert_allclose(joined.level_one_models, expected, rtol=1e-12)
+    # A window that carries models in (a stream's) runs Progressive-X once, as without the setting.
+    carried = CascadedSegmenter(sensor_size=SIZE, extra_thresholds=[1.25])(
+        scene.events, initial_models=result.models
+    )
+    plain = CascadedSegmenter(sensor_size=SIZE, extra_thresholds=[])(
+        scene.events, initial_models=result.models
+    )
+    np.testing.assert_array_equal(carried.level_one_models, plain.level_one_models)
     with pytest.raises(ConfigError, match="extra_thresholds"):
         CascadedSegmenter(sensor_size=SIZE, extra_thresholds=[1.25, 0.0])
     with pytest.raises(ConfigError, match="extra_thresholds"):

@@ -4,7 +4,7 @@ For every model :math:`l` of a pool (EMSGC ``computeDataTermLookUpTables_GMM_und
 
 1. warp **all** events of the window with :math:`\theta_l` and build the IWE :math:`I_l` (bilinear
    voting, Gaussian blur :math:`\sigma = 1`, see :func:`~evseg_torch.level_two.iwe.splat_events`;
-   level two's ``data_sigma`` is 0.7, a deviation measured in ``docs/objects.md``);
+   level two's ``data_sigma`` is 0.65, a deviation measured in ``docs/objects.md``);
 2. normalise **jointly**: :math:`M = \max_{l, x} I_l(x)`, the largest value over all models' IWEs;
 3. take the negative image :math:`N_l = 255 (1 - I_l / M)`, which is 0 at the sharpest pixel of the pool;
 4. the cost of event :math:`k` under :math:`l` is :math:`N_l` read by bilinear interpolation at the event's

@@ -10,18 +10,20 @@ import numpy as np
 import pytest
 import torch
 
+from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.evaluation.labelled import evaluate_labelled
 from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
 from evseg_torch.pipeline import CascadedSegmenter
 
 PROBE = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "synthetic_probe"
-# Measured with the default config (the data term's sigma 0.7, label cost 6000), means over pipeline
-# seeds 0-8: accuracy 0.944, IMO IoU 0.819, detection 0.894, |count error| 0.148; single seeds 0.930-0.964,
-# 0.796-0.839, 0.847-0.938, 0.04-0.29 (seed 0, which this test runs: 0.964, 0.839, 0.917, 0.04). Float
-# rounding alone (the same sums in another order) moves a seed's figures by 0.01-0.04, so the floors sit
-# under the worst seed. The bars (0.93, 0.80, 0.93, 0.25) are met but for detection.
-PROBE_FLOORS = {"accuracy": 0.9, "iou": 0.77, "detection": 0.83, "abs_count_error": 0.35}
-# Measured on seeds 0-19 of the 'hard' family, pipeline seeds 0-8: accuracy 0.935, IMO IoU 0.644,
+# Measured with the default config (two Progressive-X pools, the data term's sigma 0.65, label cost
+# 6000, the compiled fits), means over pipeline seeds 0-2, 3-5 and 6-8: accuracy 0.943 / 0.944 / 0.947, IMO
+# IoU 0.802 / 0.822 / 0.830, detection 0.861 / 0.891 / 0.933, |count error| 0.250 / 0.181 / 0.194. Single
+# seeds spread wider (detection 0.819-0.972), and float rounding alone moves a 3-seed mean's detection by
+# 3-4 points (docs/objects.md), so the test takes seeds 0-2 and its floors sit under the worst triplet.
+PROBE_SEEDS = (0, 1, 2)
+PROBE_FLOORS = {"accuracy": 0.9, "iou": 0.77, "detection": 0.82, "abs_count_error": 0.35}
+# Measured (before the two pools) on seeds 0-19 of the 'hard' family, pipeline seeds 0-8: accuracy 0.935, IMO IoU 0.644,
 # detection 0.715 (single seeds 0.922-0.940, 0.613-0.666, 0.658-0.767).
 FAMILY_FLOORS = {"accuracy": 0.9, "iou": 0.6, "detection": 0.63}
 
@@ -36,8 +38,13 @@ def _one_thread():
 
 @pytest.mark.skipif(not PROBE.is_dir(), reason="../shared/data/synthetic_probe is not beside the repository")
 def test_probe_scenes():
-    scores = evaluate_labelled(sorted(PROBE.glob("scene_*.npz")), None)
-    assert len(scores) == 24
+    paths = sorted(PROBE.glob("scene_*.npz"))
+    scores = [
+        score
+        for seed in PROBE_SEEDS
+        for score in evaluate_labelled(paths, replace_config(SegmenterConfig(), seed=seed))
+    ]
+    assert len(scores) == 24 * len(PROBE_SEEDS)
     accuracy = np.mean([s.accuracy for s in scores])
     iou = np.mean([s.iou for s in scores])
     detection = np.mean([s.detection for s in scores])
