@@ -408,7 +408,8 @@ class CascadedSegmenter(nn.Module):
         cfg = self.config
         start = time.perf_counter()
         given = None if initial_models is None else self.motion.check_instances(initial_models)
-        replaced = given is not None and len(given) and cfg.level_one.initial_models == "replace"
+        carried = given is not None and len(given) > 0
+        replaced = carried and cfg.level_one.initial_models == "replace"
         if replaced or events["t"][-1] == events["t"][0] or min(self.sensor_size) < _MIN_FEATURE_SIZE:
             empty = np.zeros((0, 2))
             tracks = Correspondences(empty, empty, np.zeros(0), 0.0, 0.0)
@@ -440,7 +441,6 @@ class CascadedSegmenter(nn.Module):
         # Further runs at other thresholds only add hypotheses; the tracks keep the first run's labels. A
         # window that carries models in (a stream's) has hypotheses for its objects already, and there
         # the further runs' pools cost streamed detection (docs/objects.md).
-        carried = given is not None and len(given) > 0
         thresholds = () if carried else cfg.level_one.extra_thresholds
         extra = [fit(threshold, None).params for threshold in thresholds]
         if extra:

@@ -220,13 +220,8 @@ class ContrastMaximization(nn.Module):
         Returns:
             :math:`(K,)`, as :func:`~evseg_torch.level_two.contrast.contrast_loss` up to rounding.
         """
-        compiled = (
-            self.kernel is not None
-            and self.objective not in REFERENCE_OBJECTIVES
-            and events.xy.device.type == "cpu"
-            and events.xy.dtype == torch.float32
-        )
-        if not compiled:
+        kernel = None if self.objective in REFERENCE_OBJECTIVES else self._kernel_for(events.xy)
+        if kernel is None:
             return contrast_loss(
                 self.model,
                 events,
@@ -240,7 +235,12 @@ class ContrastMaximization(nn.Module):
         warp = LinearWarp.build(self.model, events, with_area=self.collapse_weight > 0)
         extent = np.tile(np.array(self.sensor_size, dtype=np.int64), (len(params), 1))
         seed = -torch.ones(len(params))
-        return self.kernel(warp, params, weights, extent, self.sigma, self.collapse_weight, MIN_AREA, seed)[0]
+        return kernel(warp, params, weights, extent, self.sigma, self.collapse_weight, MIN_AREA, seed)[0]
+
+    def _kernel_for(self, xy: Tensor) -> Callable | None:
+        """The compiled evaluation for clusters at positions ``xy``: only float32 fits on the CPU take it;
+        ``None`` for the tensor code."""
+        return self.kernel if xy.device.type == "cpu" and xy.dtype == torch.float32 else None
 
     def _fit_windows(self, events: EventBatch, init: Tensor, weights: Tensor | None, max_iter: int) -> Tensor:
         """Fit the clusters of a padded batch: ``init`` :math:`(B, K, P)`, ``weights`` :math:`(B, K, N)`."""
@@ -318,9 +318,10 @@ class ContrastMaximization(nn.Module):
 
 class _Rows(NamedTuple):
     """What the loss of some clusters needs: their warp, weights :math:`(R, n)`, scales :math:`(R, P)`,
-    pixels in the canvas, bool :math:`(R, H, W)` (``None``: the whole canvas; built once, not at every
-    evaluation), the variances of their reference images :math:`(R,)` (objectives that need one) and
-    their images' sizes, int64 :math:`(R, 2)` in NumPy (for the compiled evaluation)."""
+    pixels in the canvas, bool :math:`(R, H, W)` (``None``: the whole canvas, or the compiled evaluation,
+    which reads the sizes instead; built once, not at every evaluation), the variances of their reference
+    images :math:`(R,)` (objectives that need one) and their images' sizes, int64 :math:`(R, 2)` in NumPy
+    (for the compiled evaluation)."""
 
     warp: LinearWarp
     weights: Tensor
@@ -373,14 +374,15 @@ class _FitSet:
         if cropped:
             extent = torch.as_tensor(own_sizes, device=start.device)
         warp, weights = warp.rows(self.index), weights[self.index]
-        # The compiled evaluation takes float32 fits on the CPU; the tensor code all others.
-        self.kernel = cmax.kernel if warp.xy.device.type == "cpu" and warp.xy.dtype == torch.float32 else None
+        self.kernel = cmax._kernel_for(warp.xy)
         mask = None if extent is None else extent_mask(extent, self.size)
         reference_variance = None
         if cmax.objective in REFERENCE_OBJECTIVES:
             # A constant of the fits: the variance of each cluster's unwarped image, once.
             reference = splat_events(warp.xy, self.size, weights, cmax.sigma, extent=extent).detach()
             reference_variance = image_variance(reference, mask=mask)
+        # The compiled evaluation reads each cluster's extent; only the tensor code needs its mask.
+        mask = mask if self.kernel is None else None
         self.all_rows = _Rows(warp, weights, scale[self.index], mask, reference_variance, own_sizes)
         self.starts = start[self.index]
         norm = self._losses_and_grads(self.all_rows, self.starts, None)[0].abs()
