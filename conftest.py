@@ -5,4 +5,4 @@ collect_ignore = []
 try:
     import numba  # noqa: F401
 except ImportError:
-    collect_ignore.append("evseg_torch/level_two/fit_kernel.py")
+    collect_ignore += ["evseg_torch/level_two/fit_kernel.py", "evseg_torch/level_two/graph_kernel.py"]

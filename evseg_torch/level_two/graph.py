@@ -40,6 +40,9 @@ for all lookups.
 
 from __future__ import annotations
 
+import functools
+import importlib
+from collections.abc import Callable
 from typing import NamedTuple
 
 import cv2
@@ -204,19 +207,7 @@ def site_graph(
     site_of = np.cumsum(per_cell > 0) - 1
     sites = site_of[cell]
 
-    # Event pairs counted per (adjacent pixel pair, slice at its first pixel, slice at its second) with
-    # one bincount: key = pair * slices^2 + slot_low * slices + slot_high; in one slice every slot is 0.
-    found = _lookups(pixel, pixel_pairs, t)
-    slot_low = slot_high = 0
-    if slices > 1:
-        tail_is_low = pixel[found.tail] == pixel_pairs[found.pair, 0]
-        slot_low = np.where(tail_is_low, slot[found.tail], slot[found.head])
-        slot_high = np.where(tail_is_low, slot[found.head], slot[found.tail])
-    counts = np.bincount(
-        (found.pair * slices + slot_low) * slices + slot_high,
-        weights=found.first,
-        minlength=len(pixel_pairs) * slices**2,
-    )
+    counts = _pair_slot_counts(pixel, pixel_pairs, t, slot, slices)
     key = np.flatnonzero(counts)
     pair, slot_low, slot_high = key // slices**2, key // slices % slices, key % slices
     low = site_of[pixel_pairs[pair, 0] * slices + slot_low]
@@ -228,6 +219,38 @@ def site_graph(
         edges.append(np.column_stack([later - 1, later]))
         weights.append(np.ones(len(later)))
     return sites, np.concatenate(edges), np.concatenate(weights).astype(np.float64)
+
+
+def _pair_slot_counts(
+    pixel: np.ndarray, pixel_pairs: np.ndarray, t: np.ndarray, slot: np.ndarray, slices: int
+) -> np.ndarray:
+    """Event pairs joined by the lookups per (adjacent pixel pair, slice at its first pixel, slice at its
+    second): float64, ``A * slices**2`` counts, at ``(pair * slices + slot_low) * slices + slot_high``. In
+    one slice the compiled count serves where Numba is installed (the same counts)."""
+    compiled = _compiled_pair_counts() if slices == 1 else None
+    if compiled is not None:
+        return compiled(pixel, t, pixel_pairs)
+    found = _lookups(pixel, pixel_pairs, t)
+    slot_low = slot_high = 0
+    if slices > 1:
+        tail_is_low = pixel[found.tail] == pixel_pairs[found.pair, 0]
+        slot_low = np.where(tail_is_low, slot[found.tail], slot[found.head])
+        slot_high = np.where(tail_is_low, slot[found.head], slot[found.tail])
+    return np.bincount(
+        (found.pair * slices + slot_low) * slices + slot_high,
+        weights=found.first,
+        minlength=len(pixel_pairs) * slices**2,
+    )
+
+
+@functools.cache
+def _compiled_pair_counts() -> Callable | None:
+    """:func:`~evseg_torch.level_two.graph_kernel.pair_counts` where Numba (the optional ``fast`` extra) is
+    installed, else ``None``; imported on first use, so that importing the package does not load Numba."""
+    try:
+        return importlib.import_module("evseg_torch.level_two.graph_kernel").pair_counts
+    except ImportError:
+        return None
 
 
 class _Lookups(NamedTuple):

@@ -6,6 +6,7 @@ import torch
 
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EVENT_DTYPE, EventBatch
+from evseg_torch.level_two import graph
 from evseg_torch.level_two.graph import event_graph, pixel_adjacency, site_graph
 
 
@@ -181,6 +182,19 @@ class TestSiteGraph:
         np.testing.assert_array_equal(edges[order], expected[0])
         np.testing.assert_allclose(weights[order], expected[1])
         assert (edges[:, 0] < edges[:, 1]).all() and (weights > 0).all()
+
+    @pytest.mark.parametrize("seed", range(4))
+    def test_compiled_counts_equal_the_lookups(self, seed, monkeypatch):
+        pytest.importorskip("numba")
+        rng = np.random.default_rng(seed)
+        count = [5, 300, 3000, 20000][seed]
+        xy = np.column_stack([rng.integers(0, 30, count), rng.integers(0, 20, count)])
+        t = rng.integers(0, max(count // 4, 2), count)  # ties in time, broken by event order
+        compiled = site_graph(xy, t)
+        monkeypatch.setattr(graph, "_compiled_pair_counts", lambda: None)
+        for found, expected in zip(compiled, site_graph(xy, t), strict=True):
+            assert found.dtype == expected.dtype
+            np.testing.assert_array_equal(found, expected)
 
     def test_small_inputs_and_exceptions(self):
         sites, edges, weights = site_graph(np.array([[3, 4]]), np.array([0.0]))
