@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from evseg_torch.motion.base import MotionModel, array_namespace
+from evseg_torch.motion.base import MotionModel, jacobian_zeros
 
 
 @dataclass(frozen=True)
@@ -33,12 +33,14 @@ class Affine4(MotionModel):
     min_samples = 2
 
     def jacobian(self, xy):
-        xp = array_namespace(xy)
         cx, cy = self.principal_point
         xc, yc = xy[..., 0] - cx, xy[..., 1] - cy
-        one, zero = xp.ones_like(xc), xp.zeros_like(xc)
-        rows = [xp.stack([one, zero, xc, -yc], axis=-1), xp.stack([zero, one, yc, xc], axis=-1)]
-        return xp.stack(rows, axis=-2)
+        jacobian = jacobian_zeros(xc, 4)  # rows (1, 0, xc, -yc) and (0, 1, yc, xc)
+        jacobian[..., 0, 0] = jacobian[..., 1, 1] = 1
+        jacobian[..., 0, 2] = jacobian[..., 1, 3] = xc
+        jacobian[..., 1, 2] = yc
+        jacobian[..., 0, 3] = -yc
+        return jacobian
 
     def displacement_scale(self, duration: float) -> np.ndarray:
         radius = 0.5 * float(np.hypot(*self.sensor_size))

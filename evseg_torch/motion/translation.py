@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from evseg_torch.motion.base import MotionModel, array_namespace
+from evseg_torch.motion.base import MotionModel, jacobian_zeros
 
 
 @dataclass(frozen=True)
@@ -25,9 +25,9 @@ class Translation(MotionModel):
     min_samples = 1
 
     def jacobian(self, xy):
-        xp = array_namespace(xy)
-        one, zero = xp.ones_like(xy[..., 0]), xp.zeros_like(xy[..., 0])
-        return xp.stack([xp.stack([one, zero], axis=-1), xp.stack([zero, one], axis=-1)], axis=-2)
+        jacobian = jacobian_zeros(xy[..., 0], 2)
+        jacobian[..., 0, 0] = jacobian[..., 1, 1] = 1
+        return jacobian
 
     def displacement_scale(self, duration: float) -> np.ndarray:
         return np.full(2, float(duration))
