@@ -5,4 +5,4 @@ collect_ignore = []
 try:
     import numba  # noqa: F401
 except ImportError:
-    collect_ignore += ["evseg_torch/level_two/fit_kernel.py", "evseg_torch/level_two/graph_kernel.py"]
+    collect_ignore += [f"evseg_torch/level_two/{name}_kernel.py" for name in ("fit", "graph", "solver")]

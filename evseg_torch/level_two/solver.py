@@ -10,7 +10,9 @@ call costs as many batched evaluations as its slowest problem needs alone. No th
 The state is tiny, so it lives in NumPy arrays (of the start's dtype) on the CPU whatever the device
 of the evaluations: on arrays of a few dozen numbers, each torch operation costs several NumPy ones (the
 bookkeeping of one L-BFGS round: 665 µs as torch code, 202 µs in NumPy). Only the trial points go to
-the device, in the dtype of the start, and only the losses and gradients come back.
+the device, in the dtype of the start, and only the losses and gradients come back. Where Numba (the
+optional ``fast`` extra) is installed, L-BFGS's bookkeeping between two evaluations runs as one compiled
+call (:mod:`~evseg_torch.level_two.solver_kernel`), the same rounds step by step.
 
 Each row follows the path it follows alone: its updates are elementwise or reduce over its own
 parameters only, so a problem's result does not depend on the other problems, bit for bit on one
@@ -27,6 +29,8 @@ Its quality against torch's L-BFGS, and the variants measured, are in ``docs/spe
 
 from __future__ import annotations
 
+import functools
+import importlib
 from collections.abc import Callable
 
 import numpy as np
@@ -96,9 +100,20 @@ def lbfgs(
     Returns:
         The final values :math:`(C, P)`, on the device and in the dtype of ``start``.
     """
+    run = _compiled_lbfgs() or _lbfgs
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        found = _lbfgs(_Evaluations(evaluate, start), _as_array(start), max_iter, lr, tol)
+        found = run(_Evaluations(evaluate, start), _as_array(start), max_iter, lr, tol)
     return torch.as_tensor(found, device=start.device)
+
+
+@functools.cache
+def _compiled_lbfgs() -> Callable | None:
+    """:func:`~evseg_torch.level_two.solver_kernel.lbfgs`, the same rounds with compiled bookkeeping,
+    where Numba (the optional ``fast`` extra) is installed, else ``None``; imported on first use."""
+    try:
+        return importlib.import_module("evseg_torch.level_two.solver_kernel").lbfgs
+    except ImportError:
+        return None
 
 
 def _lbfgs(evaluate: _Evaluations, x: np.ndarray, max_iter: int, lr: float, tol: float) -> np.ndarray:

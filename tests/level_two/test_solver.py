@@ -107,3 +107,35 @@ def test_line_search_backs_off_from_non_finite_losses():
 
     found = lbfgs(evaluate, torch.tensor([[-1.0, -1.0]], dtype=torch.float64), lr=10.0, max_iter=20)
     torch.testing.assert_close(found, torch.full((1, 2), 1.5, dtype=torch.float64), atol=1e-4, rtol=0)
+
+
+@pytest.mark.parametrize("precision", [torch.float32, torch.float64])
+@pytest.mark.parametrize(
+    ("max_iter", "lr", "tol"), [(6, 1.0, 0.0), (20, 1.0, 1e-6), (50, 10.0, 1e-12), (8, 0.3, 1e-6)]
+)
+def test_compiled_bookkeeping_follows_the_numpy_rounds(precision, max_iter, lr, tol, monkeypatch):
+    # The compiled rounds (solver_kernel) ask for the same evaluations and land where the NumPy rounds do.
+    pytest.importorskip("numba")
+    from evseg_torch.level_two import solver
+
+    start = torch.tensor([[0.0, 0.0], [1.0, 1.0], [5.0, -3.0], [-1.2, 1.0]], dtype=precision)
+
+    def run():
+        asked = []
+
+        problems = _problems(TARGETS.to(precision), SCALES.to(precision))
+
+        def evaluate(rows, x):
+            asked.append(rows.tolist())
+            return problems(rows, x)
+
+        found = lbfgs(evaluate, start, max_iter=max_iter, lr=lr, tol=tol)
+        rosenbrock = lbfgs(_rosenbrock, start, max_iter=max_iter, lr=lr, tol=tol)
+        return found, rosenbrock, asked
+
+    compiled = run()
+    monkeypatch.setattr(solver, "_compiled_lbfgs", lambda: None)
+    numpy_rounds = run()
+    assert compiled[2] == numpy_rounds[2]
+    for found, expected in zip(compiled[:2], numpy_rounds[:2], strict=True):
+        torch.testing.assert_close(found, expected, rtol=1e-5, atol=1e-6)
