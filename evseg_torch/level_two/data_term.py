@@ -65,11 +65,19 @@ event that votes all its weight into one pixel reads that pixel back. (EMSGC rea
 votes.) "Outside" means outside the closed rectangle :math:`[0, W - 1] \times [0, H - 1]` of pixel
 centres, where bilinear interpolation would need a pixel beyond the border. No integer rounding is done
 (EMSGC rounds for GCO's integer energies): the graph cut here works in float64.
+
+Speed: where Numba (the optional ``fast`` extra) is installed, the per-polarity images of ``"relative"``
+costs on the CPU (level two's data term) are splatted, blurred and read in one compiled pass per model
+(:mod:`~evseg_torch.level_two.data_term_kernel`), the same values bit for bit; with a gradient to keep,
+the tensor code runs.
 """
 
 from __future__ import annotations
 
+import functools
+import importlib
 import math
+from collections.abc import Callable
 from numbers import Integral, Real
 
 import numpy as np
@@ -274,7 +282,20 @@ def data_cost(
         extent = extent[:, None]  # (B, 1, 2): the same image size for a window's models
     read_extent = None if extent is None else extent.expand(-1, n_models, -1).reshape(-1, 1, 2)
     votes = events.mask[:, None].to(warped.dtype)  # padding votes nothing
-    if polarity:
+    compiled = _compiled_polarity_values() if polarity and normalization == "relative" else None
+    if (
+        compiled is not None
+        and warped.device.type == "cpu"
+        and warped.dtype == torch.float32
+        and not (torch.is_grad_enabled() and warped.requires_grad)
+        and min(size) > 1
+    ):
+        # The same values and flags as the tensor code below, in one compiled pass per model.
+        sizes = np.array(size) if extent is None else extent[:, 0].cpu().numpy()
+        values, inside = compiled(
+            warped, events.p <= 0, votes[:, 0], np.broadcast_to(sizes, (n_windows, 2)), sigma
+        )
+    elif polarity:
         # (B, K, 2, H, W); image 2 (b K + k) reads window b's model k's positive events, the next its others.
         iwes = splat_events(warped, size, votes, sigma, polarity=events.p[:, None], extent=extent)
         own = 2 * torch.arange(n_windows * n_models, device=params.device).view(n_windows, n_models, 1)
@@ -287,7 +308,7 @@ def data_cost(
         values, inside = sample_bilinear(iwes.flatten(0, 1), warped.flatten(0, 1), extent=read_extent)
     inside = inside.view_as(real.expand(n_windows, n_models, -1)) & real
     values = values.view_as(inside) * inside
-    tiny = torch.finfo(iwes.dtype).tiny
+    tiny = torch.finfo(values.dtype).tiny
     if normalization == "global":
         shown = iwes
         if extent is not None:
@@ -306,6 +327,16 @@ def data_cost(
     ratio = (values / peak).clamp(max=1)
     cost = torch.where(inside, MAX_COST * (1 - ratio), torch.full_like(values, MAX_COST)).transpose(1, 2)
     return cost if batched else cost[0]
+
+
+@functools.cache
+def _compiled_polarity_values() -> Callable | None:
+    """:func:`~evseg_torch.level_two.data_term_kernel.polarity_values` where Numba (the optional ``fast``
+    extra) is installed, else ``None``; imported on first use."""
+    try:
+        return importlib.import_module("evseg_torch.level_two.data_term_kernel").polarity_values
+    except ImportError:
+        return None
 
 
 def _check_margin(margin) -> None:

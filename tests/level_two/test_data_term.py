@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
-from evseg_torch.events import EventBatch, batch_windows
+from evseg_torch.events import EventBatch, batch_windows, to_torch
 from evseg_torch.level_two.data_term import (
     NORMALIZATIONS,
     DataCost,
@@ -107,6 +107,46 @@ class TestDataCostBatch:
             if device.type == "cpu":
                 assert torch.equal(own, alone)
             assert torch.all(cost[row, len(window) :] == 255) and torch.all(cost[row, :, len(pool) :] == 255)
+
+    @pytest.mark.parametrize("margin", [None, 0, 3])
+    def test_compiled_images_equal_the_tensor_code(self, margin, monkeypatch):
+        # Where Numba is installed, per-polarity images in "relative" normalisation are splatted, blurred and
+        # read by one compiled pass (data_term_kernel): the same costs bit for bit, batched and alone.
+        pytest.importorskip("numba")
+        from evseg_torch.level_two import data_term
+        from evseg_torch.synthetic import make_scene
+
+        windows, pools = _windows()
+        signs = torch.Generator().manual_seed(3)
+        windows = [
+            EventBatch(w.xy, w.t, torch.randint(2, (len(w),), generator=signs) * 2.0 - 1) for w in windows
+        ]
+        params = torch.nn.utils.rnn.pad_sequence(pools, batch_first=True)
+        valid = torch.tensor([[True, True, True], [True, True, False], [True, True, True]])
+        scene = make_scene((45, 60), 0.03, 2, rng=0, n_events=3000)
+        dense = to_torch(scene.events)
+        kwargs = {"normalization": "relative", "polarity": True, "margin": margin, "sigma": 0.65}
+
+        def costs():
+            found = [data_cost(Translation((32, 40)), batch_windows(windows), params, valid=valid, **kwargs)]
+            found += [
+                data_cost(Translation((32, 40)), w, p, **kwargs) for w, p in zip(windows, pools, strict=True)
+            ]
+            pool = torch.tensor([[100.0, -50.0, 1.0, -2.0], [0.0, 0.0, 0.0, 0.0], [-300.0, 20.0, 0.0, 5.0]])
+            return [*found, data_cost(Affine4((45, 60)), dense, pool, **kwargs)]
+
+        compiled = costs()
+        monkeypatch.setattr(data_term, "_compiled_polarity_values", lambda: None)
+        for found, expected in zip(compiled, costs(), strict=True):
+            assert torch.equal(found, expected)
+
+    def test_compiled_images_keep_the_gradient(self):
+        # With a gradient to keep, the tensor code runs: the costs stay differentiable in the parameters.
+        windows, pools = _windows()
+        params = pools[0].clone().requires_grad_()
+        cost = data_cost(Translation((32, 40)), windows[0], params, normalization="relative", polarity=True)
+        cost.sum().backward()
+        assert params.grad is not None and torch.isfinite(params.grad).all()
 
     def test_margins_differ(self):
         # The windows' own margins (margin=None) differ, so the batch above holds each window's IWEs in
