@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -140,14 +141,9 @@ def splat_events(
                 f"weights must be (..., {xy.shape[-2]}) to match xy {tuple(xy.shape)}, "
                 f"got {tuple(weights.shape)}"
             )
-        try:
-            batch_shape = torch.broadcast_shapes(batch_shape, weights.shape[:-1])
-        except RuntimeError:
-            raise ShapeError(
-                f"weights {tuple(weights.shape)} do not broadcast against xy {tuple(xy.shape)}"
-            ) from None
+        batch_shape = _broadcast(batch_shape, weights, "weights", xy)
     if polarity is not None:
-        batch_shape = torch.broadcast_shapes(batch_shape, polarity.shape[:-1])
+        batch_shape = _broadcast(batch_shape, polarity, "polarity", xy)
     check_blur(sigma, truncate)
 
     corner, taps = bilinear_taps(xy, weights, height, width)
@@ -165,6 +161,17 @@ def splat_events(
         inside = extent_mask(extent, (height, width))
         image = image * (inside if polarity is None else inside.unsqueeze(-3))
     return gaussian_blur(image, sigma, truncate)
+
+
+def _broadcast(batch_shape: tuple[int, ...], per_event: Tensor, name: str, xy: Tensor) -> tuple[int, ...]:
+    """``batch_shape`` broadcast against the leading dimensions of ``per_event`` :math:`(..., N)`. NumPy's
+    rule on shapes: ``torch.broadcast_shapes`` imports SymPy on first use, 0.35 s of every process."""
+    try:
+        return np.broadcast_shapes(tuple(batch_shape), tuple(per_event.shape[:-1]))
+    except ValueError:
+        raise ShapeError(
+            f"{name} {tuple(per_event.shape)} do not broadcast against xy {tuple(xy.shape)}"
+        ) from None
 
 
 def extent_mask(extent: Tensor, size: tuple[int, int]) -> Tensor:
