@@ -51,7 +51,7 @@ class TestSplatEvents:
             splat_events(torch.rand(20, 2), (8, 8), torch.rand(19))
         with pytest.raises(ShapeError, match="do not broadcast"):
             splat_events(torch.rand(3, 20, 2), (8, 8), torch.rand(2, 20))
-        with pytest.raises(ShapeError, match="polarity .* do not broadcast"):
+        with pytest.raises(ShapeError, match=r"polarity .* do not broadcast"):
             splat_events(torch.rand(3, 20, 2), (8, 8), polarity=torch.ones(2, 20))
         with pytest.raises(ShapeError, match="sensor_size"):
             splat_events(torch.rand(20, 2), (8, 0))
