@@ -10,7 +10,9 @@ happens to fit them. Two additions make each non-background cluster one spatiall
   pays ``support_cost`` more for label :math:`l`. Scattered events far from an object stop joining its
   cluster, and one object's cluster cannot take over another, separate object's events by α-expansion
   (it would pay for every one of them), so two objects that move alike keep two labels. The background
-  (the largest cluster, and any whose events spread over the view: :func:`spans_view`) has no support
+  (the cluster whose events spread widest over the view, :func:`coverage`, whether or not it holds the
+  most events: large, densely textured objects can outnumber a sparse background; and any other cluster
+  whose events spread over the view: :func:`spans_view`) has no support
   term. The term applies in level two's *object phase*, the labellings after its descent has settled
   (:mod:`~evseg_torch.level_two.segmenter`; from the first labelling, supports built on poor early
   labels kept their mistakes, see ``docs/objects.md``). A label's support is rebuilt before each of
@@ -48,6 +50,7 @@ from evseg_torch.motion import MotionModel
 __all__ = [
     "ObjectPhase",
     "cluster_groups",
+    "coverage",
     "object_groups",
     "spans_view",
     "split_objects",
@@ -69,9 +72,15 @@ def spans_view(xy: np.ndarray, sensor_size: tuple[int, int]) -> bool:
     Such a cluster is no object: it gets no support term and is never split, whether or not it is the
     largest (in a sparse window a fast object's model can briefly hold more events than the camera's).
     """
+    return coverage(xy, sensor_size) >= _BACKGROUND_SPREAD
+
+
+def coverage(xy: np.ndarray, sensor_size: tuple[int, int]) -> float:
+    """The fraction of the sensor that events :math:`(n, 2)` (integer pixels) cover, each pixel dilated by
+    5 px: how far they spread over the view."""
     mask = np.zeros(sensor_size, dtype=np.uint8)
     mask[xy[:, 1], xy[:, 0]] = 1
-    return float(_dilate(mask, _SPREAD_RADIUS).mean()) >= _BACKGROUND_SPREAD
+    return float(_dilate(mask, _SPREAD_RADIUS).mean())
 
 
 def object_groups(
@@ -176,7 +185,8 @@ def cluster_groups(
     radius: int,
     min_events: int,
 ) -> dict[int, tuple[np.ndarray, int]]:
-    """The object groups of every cluster but the background's: the largest and any that spans the view.
+    """The object groups of every cluster but the background's: the one that spreads widest over the view
+    (:func:`coverage`) and any that spans the view.
 
     Args:
         warped: every event compensated by every cluster's model :math:`(K, N, 2)`.
@@ -190,7 +200,9 @@ def cluster_groups(
         ``{cluster: (group, n_groups)}`` of :func:`object_groups` for the events ``labels == cluster``
         in index order.
     """
-    background = int(np.bincount(labels, minlength=len(warped)).argmax())
+    background = int(
+        np.argmax([coverage(xy[labels == cluster], sensor_size) for cluster in range(len(warped))])
+    )
     groups = {}
     for cluster in range(len(warped)):
         members = np.flatnonzero(labels == cluster)

@@ -7,6 +7,7 @@ import torch
 from evseg_torch.events import to_torch
 from evseg_torch.level_two.objects import (
     cluster_groups,
+    coverage,
     object_groups,
     spans_view,
     split_objects,
@@ -108,6 +109,22 @@ def test_support_cost_charges_events_away_from_an_objects_groups():
     assert np.all(cost[:, 0] == 0) and np.all(cost[3000:, 1] == 0)
     far = np.linalg.norm(background - [120, 90], axis=1) > 20
     assert np.all(cost[:3000][far, 1] == 64.0)
+
+
+def test_the_background_is_the_cluster_that_spreads_widest():
+    # Dense objects may hold more events than a sparse background: the background is the cluster whose
+    # events cover the view, and the objects' cluster is the one that gets groups (its support and split).
+    rng = np.random.default_rng(9)
+    background = rng.uniform(0, 1, (1500, 2)) * [239, 179]
+    objects = np.concatenate([_blob(rng, (60, 90), 1500), _blob(rng, (180, 90), 1500)])
+    xy = np.concatenate([background, objects])
+    labels = np.repeat([0, 1], [1500, 3000])
+    polarity = rng.choice([-1, 1], len(xy))
+    groups = cluster_groups(
+        np.stack([xy, xy]), labels, polarity, xy.astype(np.int64), SIZE, radius=5, min_events=100
+    )
+    assert list(groups) == [1] and groups[1][1] == 2  # the objects' cluster: two groups, one per object
+    assert coverage(background.astype(np.int64), SIZE) > 0.35 > coverage(objects.astype(np.int64), SIZE)
 
 
 def test_split_objects_gives_each_group_a_label():
