@@ -11,7 +11,6 @@ float32 fits on the CPU, one compiled loop per cluster (:mod:`~evseg_torch.level
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -22,6 +21,7 @@ from torch import Tensor, nn
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one
 from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
+from evseg_torch.level_two.compiled import compiled_step
 from evseg_torch.level_two.contrast import (
     DEFAULT_COLLAPSE_WEIGHT,
     MIN_AREA,
@@ -60,15 +60,10 @@ def resolve_fit_backend(backend: str) -> Callable | None:
         raise ConfigError(f"fit_backend must be one of {FIT_BACKENDS}, got {backend!r}")
     if backend == "torch":
         return None
-    try:
-        kernel = importlib.import_module("evseg_torch.level_two.fit_kernel")
-    except ImportError:
-        if backend == "numba":
-            raise ConfigError(
-                "fit_backend 'numba' needs the numba package: pip install 'evseg-torch[fast]'"
-            ) from None
-        return None
-    return kernel.loss_and_grad
+    kernel = compiled_step("fit_kernel.loss_and_grad")
+    if kernel is None and backend == "numba":
+        raise ConfigError("fit_backend 'numba' needs the numba package: pip install 'evseg-torch[fast]'")
+    return kernel
 
 
 class ContrastMaximization(nn.Module):

@@ -74,10 +74,7 @@ the tensor code runs.
 
 from __future__ import annotations
 
-import functools
-import importlib
 import math
-from collections.abc import Callable
 from numbers import Integral, Real
 
 import numpy as np
@@ -86,6 +83,7 @@ from torch import Tensor, nn
 
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one
+from evseg_torch.level_two.compiled import compiled_step
 from evseg_torch.level_two.iwe import extent_mask, read_flat, splat_events, warp_events
 from evseg_torch.motion import MotionModel
 
@@ -282,7 +280,11 @@ def data_cost(
         extent = extent[:, None]  # (B, 1, 2): the same image size for a window's models
     read_extent = None if extent is None else extent.expand(-1, n_models, -1).reshape(-1, 1, 2)
     votes = events.mask[:, None].to(warped.dtype)  # padding votes nothing
-    compiled = _compiled_polarity_values() if polarity and normalization == "relative" else None
+    compiled = (
+        compiled_step("data_term_kernel.polarity_values")
+        if polarity and normalization == "relative"
+        else None
+    )
     if (
         compiled is not None
         and warped.device.type == "cpu"
@@ -327,16 +329,6 @@ def data_cost(
     ratio = (values / peak).clamp(max=1)
     cost = torch.where(inside, MAX_COST * (1 - ratio), torch.full_like(values, MAX_COST)).transpose(1, 2)
     return cost if batched else cost[0]
-
-
-@functools.cache
-def _compiled_polarity_values() -> Callable | None:
-    """:func:`~evseg_torch.level_two.data_term_kernel.polarity_values` where Numba (the optional ``fast``
-    extra) is installed, else ``None``; imported on first use."""
-    try:
-        return importlib.import_module("evseg_torch.level_two.data_term_kernel").polarity_values
-    except ImportError:
-        return None
 
 
 def _check_margin(margin) -> None:

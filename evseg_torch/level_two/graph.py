@@ -40,9 +40,6 @@ for all lookups.
 
 from __future__ import annotations
 
-import functools
-import importlib
-from collections.abc import Callable
 from typing import NamedTuple
 
 import cv2
@@ -50,6 +47,7 @@ import numpy as np
 
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EVENT_DTYPE, EventBatch, check_sensor_size
+from evseg_torch.level_two.compiled import compiled_step
 
 __all__ = ["event_graph", "pixel_adjacency", "site_graph"]
 
@@ -227,7 +225,7 @@ def _pair_slot_counts(
     """Event pairs joined by the lookups per (adjacent pixel pair, slice at its first pixel, slice at its
     second): float64, ``A * slices**2`` counts, at ``(pair * slices + slot_low) * slices + slot_high``. In
     one slice the compiled count serves where Numba is installed (the same counts)."""
-    compiled = _compiled_pair_counts() if slices == 1 else None
+    compiled = compiled_step("graph_kernel.pair_counts") if slices == 1 else None
     if compiled is not None:
         return compiled(pixel, t, pixel_pairs)
     found = _lookups(pixel, pixel_pairs, t)
@@ -241,16 +239,6 @@ def _pair_slot_counts(
         weights=found.first,
         minlength=len(pixel_pairs) * slices**2,
     )
-
-
-@functools.cache
-def _compiled_pair_counts() -> Callable | None:
-    """:func:`~evseg_torch.level_two.graph_kernel.pair_counts` where Numba (the optional ``fast`` extra) is
-    installed, else ``None``; imported on first use, so that importing the package does not load Numba."""
-    try:
-        return importlib.import_module("evseg_torch.level_two.graph_kernel").pair_counts
-    except ImportError:
-        return None
 
 
 class _Lookups(NamedTuple):

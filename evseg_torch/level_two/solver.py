@@ -29,13 +29,13 @@ Its quality against torch's L-BFGS, and the variants measured, are in ``docs/spe
 
 from __future__ import annotations
 
-import functools
-import importlib
 from collections.abc import Callable
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from evseg_torch.level_two.compiled import compiled_step
 
 Evaluate = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 """``evaluate(rows, x)``: the losses :math:`(R,)` and gradients :math:`(R, P)` of problems ``rows``
@@ -100,20 +100,10 @@ def lbfgs(
     Returns:
         The final values :math:`(C, P)`, on the device and in the dtype of ``start``.
     """
-    run = _compiled_lbfgs() or _lbfgs
+    run = compiled_step("solver_kernel.lbfgs") or _lbfgs
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         found = run(_Evaluations(evaluate, start), _as_array(start), max_iter, lr, tol)
     return torch.as_tensor(found, device=start.device)
-
-
-@functools.cache
-def _compiled_lbfgs() -> Callable | None:
-    """:func:`~evseg_torch.level_two.solver_kernel.lbfgs`, the same rounds with compiled bookkeeping,
-    where Numba (the optional ``fast`` extra) is installed, else ``None``; imported on first use."""
-    try:
-        return importlib.import_module("evseg_torch.level_two.solver_kernel").lbfgs
-    except ImportError:
-        return None
 
 
 def _lbfgs(evaluate: _Evaluations, x: np.ndarray, max_iter: int, lr: float, tol: float) -> np.ndarray:
