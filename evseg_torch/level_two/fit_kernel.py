@@ -120,7 +120,8 @@ def _loss_and_grad(xy, maps, params, weights, extent, taps, gamma, min_area, see
         flat *= np.float32(2.0) * seed[r] / np.float32(count)
         _blur(blurred, scratch, image, taps)
         for i in range(n_events):
-            _pull_back(image, xy[r, i], votes[i], gamma, min_area, moved, grad_moved, i)
+            x, y = xy[r, i, 0] - moved[i, 0], xy[r, i, 1] - moved[i, 1]
+            _pull_back(image, x, y, votes[i], gamma, min_area, moved, grad_moved, i)
         for p in range(n_params):
             grad[r, p] = np.float32(_sum(maps[p, r].ravel(), grad_moved.ravel(), True))
 
@@ -143,13 +144,13 @@ def _move(maps, params, r, moved):
 
 
 @njit(cache=True)
-def _pull_back(image, position, vote, gamma, min_area, moved, grad_moved, i):
+def _pull_back(image, x, y, vote, gamma, min_area, moved, grad_moved, i):
     """Row ``i`` of ``grad_moved`` :math:`(n, C)`, the gradient of event ``i``'s ``moved`` channels, from
-    the gradient image; 0 for an event whose taps all miss the image."""
+    the gradient image at its warped position ``(x, y)``; 0 for an event whose taps all miss the image.
+    (Scalars, not a view of the event's row: a view per event cost a quarter of this step.)"""
     for c in range(grad_moved.shape[1]):
         grad_moved[i, c] = 0.0
     height, width = image.shape
-    x, y = position[0] - moved[i, 0], position[1] - moved[i, 1]
     if not _touches(x, y, height, width):
         return
     col, row = math.floor(x), math.floor(y)
