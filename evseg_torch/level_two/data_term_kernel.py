@@ -20,10 +20,7 @@ import torch
 from numba import njit
 from torch import Tensor
 
-from evseg_torch.level_two.fit_kernel import _blur, blur_taps
-
-_ONE = np.float32(1.0)
-_ZERO = np.float32(0.0)
+from evseg_torch.level_two.fit_kernel import _ONE, _ZERO, _blur, _corner, blur_taps
 
 
 def polarity_values(
@@ -72,9 +69,7 @@ def _polarity_values(warped, negative, votes, extent, taps, values, inside):
             images[:] = 0.0
             for i in range(n_events):
                 x, y, vote = warped[b, k, i, 0], warped[b, k, i, 1], votes[b, i]
-                col, row = math.floor(x), math.floor(y)
-                fx, fy = x - np.float32(col), y - np.float32(row)
-                corner[i, 0], corner[i, 1] = col, row
+                corner[i, 0], corner[i, 1], fx, fy = _corner(x, y)
                 top, bottom = (_ONE - fy) * vote, fy * vote
                 weight[0, i], weight[1, i] = top * (_ONE - fx), top * fx
                 weight[2, i], weight[3, i] = bottom * (_ONE - fx), bottom * fx

@@ -153,9 +153,7 @@ def _pull_back(image, x, y, vote, gamma, min_area, moved, grad_moved, i):
     height, width = image.shape
     if not _touches(x, y, height, width):
         return
-    col, row = math.floor(x), math.floor(y)
-    fx, fy = x - np.float32(col), y - np.float32(row)
-    col, row = int(col), int(row)
+    col, row, fx, fy = _corner(x, y)
     g00 = _pixel(image, row, col)
     g01 = _pixel(image, row, col + 1)
     g10 = _pixel(image, row + 1, col)
@@ -203,6 +201,14 @@ def _area(moved, i):
 
 
 @njit(cache=True)
+def _corner(x, y):
+    """The top-left bilinear tap ``(col, row)`` of ``(x, y)`` and the position's fractions ``(fx, fy)``
+    beyond it (float32, as the tensor code's ``xy - floor(xy)``)."""
+    col, row = math.floor(x), math.floor(y)
+    return col, row, x - np.float32(col), y - np.float32(row)
+
+
+@njit(cache=True)
 def _touches(x, y, height, width):
     """Whether some bilinear tap of ``(x, y)`` is a pixel of the image (False for NaN)."""
     return x > -1.0 and x < width and y > -1.0 and y < height
@@ -221,9 +227,7 @@ def _splat(image, x, y, vote):
     height, width = image.shape
     if not _touches(x, y, height, width):
         return
-    col, row = math.floor(x), math.floor(y)
-    fx, fy = x - np.float32(col), y - np.float32(row)
-    col, row = int(col), int(row)
+    col, row, fx, fy = _corner(x, y)
     top, bottom, left = (_ONE - fy) * vote, fy * vote, _ONE - fx
     if row >= 0:
         if col >= 0:

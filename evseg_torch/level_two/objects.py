@@ -192,7 +192,7 @@ def cluster_groups(
         warped: every event compensated by every cluster's model :math:`(K, N, 2)`.
         labels: cluster of each event :math:`(N,)` in ``[0, K)``.
         polarity: each event's polarity :math:`(N,)`.
-        xy: each event's integer pixel :math:`(N, 2)`, for :func:`spans_view`.
+        xy: each event's integer pixel :math:`(N, 2)`, for :func:`coverage`.
         sensor_size: ``(H, W)``.
         radius, min_events: as in :func:`object_groups`.
 
@@ -200,13 +200,12 @@ def cluster_groups(
         ``{cluster: (group, n_groups)}`` of :func:`object_groups` for the events ``labels == cluster``
         in index order.
     """
-    background = int(
-        np.argmax([coverage(xy[labels == cluster], sensor_size) for cluster in range(len(warped))])
-    )
+    spread = [coverage(xy[labels == cluster], sensor_size) for cluster in range(len(warped))]
+    background = int(np.argmax(spread))
     groups = {}
     for cluster in range(len(warped)):
         members = np.flatnonzero(labels == cluster)
-        if cluster != background and not spans_view(xy[members], sensor_size):
+        if cluster != background and spread[cluster] < _BACKGROUND_SPREAD:  # not spans_view
             groups[cluster] = object_groups(
                 warped[cluster, members], polarity[members], sensor_size, radius=radius, min_events=min_events
             )
