@@ -203,8 +203,9 @@ def _area(moved, i):
 @njit(cache=True)
 def _corner(x, y):
     """The top-left bilinear tap ``(col, row)`` of ``(x, y)`` and the position's fractions ``(fx, fy)``
-    beyond it (float32, as the tensor code's ``xy - floor(xy)``)."""
-    col, row = math.floor(x), math.floor(y)
+    beyond it (float32, as the tensor code's ``xy - floor(xy)``). ``np.floor``, not ``math.floor``: the
+    same taps, and a quarter of the time in Numba (a float32 ``math.floor`` goes through Python's int)."""
+    col, row = int(np.floor(x)), int(np.floor(y))
     return col, row, x - np.float32(col), y - np.float32(row)
 
 

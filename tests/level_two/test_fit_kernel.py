@@ -77,6 +77,23 @@ def test_kernel_clusters_are_independent_bit_for_bit():
     assert torch.equal(loss[2:3], alone_loss) and torch.equal(grad[2:3], alone_grad)
 
 
+def test_corner_and_clamp_follow_python_semantics():
+    # The compiled steps' tap and clamp helpers (written with np.floor and comparisons for speed) give
+    # math.floor's taps and min(max(...))'s values, signed zeros and ties included.
+    import math
+
+    from evseg_torch.level_two.data_term_kernel import _clamp
+
+    values = np.float32([-0.0, 0.0, -1.0, -0.5, -1e-8, 1e-8, 0.99999994, 3.0, 238.99998, 239.0, 1e6])
+    for x in values:
+        col, row, fx, fy = fit_kernel._corner(x, -x)
+        assert (col, row) == (math.floor(x), math.floor(-x))
+        expected = np.float32(x) - np.float32(math.floor(x)), np.float32(-x) - np.float32(math.floor(-x))
+        assert np.float32([fx, fy]).tobytes() == np.float32(expected).tobytes()
+        for low, high in ((np.float32(0.0), np.float32(1.0)), (np.float32(-0.0), np.float32(238.0))):
+            assert np.float32(_clamp(x, low, high)).tobytes() == np.float32(min(max(x, low), high)).tobytes()
+
+
 @pytest.mark.parametrize("name", ["translation", "affine4", "rotation3d"])
 def test_fits_agree_across_backends(name):
     # A float32 fit (the pipeline's dtype, the only one the compiled loop serves) from 30% off lands on
