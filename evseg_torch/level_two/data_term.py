@@ -67,9 +67,9 @@ centres, where bilinear interpolation would need a pixel beyond the border. No i
 (EMSGC rounds for GCO's integer energies): the graph cut here works in float64.
 
 Speed: where Numba (the optional ``fast`` extra) is installed, the per-polarity images of ``"relative"``
-costs on the CPU (level two's data term) are splatted, blurred and read in one compiled pass per model
-(:mod:`~evseg_torch.level_two.data_term_kernel`), the same values bit for bit; with a gradient to keep,
-the tensor code runs.
+costs on the CPU (level two's data term) are splatted, blurred and read in one compiled pass per model,
+and their margins and normalisation run as compiled loops (:mod:`~evseg_torch.level_two.data_term_kernel`),
+the same costs bit for bit; with a gradient to keep, the tensor code runs.
 """
 
 from __future__ import annotations
@@ -269,7 +269,21 @@ def data_cost(
     if valid is not None:
         real = real & valid[..., None]
     warped = warp_events(model, events.xy[:, None], events.t[:, None], params)  # (B, K, N, 2)
-    margins = [margin] * n_windows if margin is not None else _margins(warped, real, height, width)
+    # Per-polarity "relative" costs on the CPU (level two's data term) come from compiled steps where
+    # Numba is installed (data_term_kernel): the same margins, values and costs bit for bit.
+    compiled = (
+        polarity
+        and normalization == "relative"
+        and warped.device.type == "cpu"
+        and warped.dtype == torch.float32
+        and not (torch.is_grad_enabled() and warped.requires_grad)
+        and compiled_step("data_term_kernel.polarity_values") is not None
+    )
+    if margin is not None:
+        margins = [margin] * n_windows
+    else:
+        overshoots = compiled_step("data_term_kernel.overshoots") if compiled else _overshoots
+        margins = _margins(overshoots(warped, real, height, width).tolist(), height, width)
     widest = max(margins)
     if widest:
         warped = warped + warped.new_tensor(margins)[:, None, None, None]
@@ -280,24 +294,16 @@ def data_cost(
         extent = extent[:, None]  # (B, 1, 2): the same image size for a window's models
     read_extent = None if extent is None else extent.expand(-1, n_models, -1).reshape(-1, 1, 2)
     votes = events.mask[:, None].to(warped.dtype)  # padding votes nothing
-    compiled = (
-        compiled_step("data_term_kernel.polarity_values")
-        if polarity and normalization == "relative"
-        else None
-    )
-    if (
-        compiled is not None
-        and warped.device.type == "cpu"
-        and warped.dtype == torch.float32
-        and not (torch.is_grad_enabled() and warped.requires_grad)
-        and min(size) > 1
-    ):
-        # The same values and flags as the tensor code below, in one compiled pass per model.
+    if compiled and min(size) > 1:
+        # The same values, flags and costs as the tensor code below, in one compiled pass per model.
         sizes = np.array(size) if extent is None else extent[:, 0].cpu().numpy()
-        values, inside = compiled(
+        values, inside = compiled_step("data_term_kernel.polarity_values")(
             warped, events.p <= 0, votes[:, 0], np.broadcast_to(sizes, (n_windows, 2)), sigma
         )
-    elif polarity:
+        costs = compiled_step("data_term_kernel.relative_costs")
+        cost = costs(values, inside, real, floor_quantile, pool_floor_quantile)
+        return cost if batched else cost[0]
+    if polarity:
         # (B, K, 2, H, W); image 2 (b K + k) reads window b's model k's positive events, the next its others.
         iwes = splat_events(warped, size, votes, sigma, polarity=events.p[:, None], extent=extent)
         own = 2 * torch.arange(n_windows * n_models, device=params.device).view(n_windows, n_models, 1)
@@ -363,14 +369,18 @@ def _own_floors(best: Tensor, owner: Tensor, seen: Tensor, n_models: int, q: flo
     return floors.gather(1, owner)
 
 
-def _margins(warped: Tensor, real: Tensor, height: int, width: int) -> list[int]:
-    """Per window, the smallest whole margin that holds every real warped position :math:`(B, K, N, 2)`,
-    capped at an eighth of the larger side."""
+def _overshoots(warped: Tensor, real: Tensor, height: int, width: int) -> Tensor:
+    """Per window, the largest overshoot of a real warped position :math:`(B, K, N, 2)` beyond the
+    sensor's pixel centres, :math:`(B,)` (``-inf`` where none is real)."""
     limit = warped.new_tensor([width - 1, height - 1])
     overshoot = torch.maximum(-warped, warped - limit).amax(dim=-1)
-    overshoot = torch.where(real, overshoot, -torch.inf).flatten(1).amax(dim=1)
+    return torch.where(real, overshoot, -torch.inf).flatten(1).amax(dim=1)
+
+
+def _margins(overshoots: list[float], height: int, width: int) -> list[int]:
+    """The smallest whole margin holding each window's overshoot, capped at an eighth of the larger side."""
     cap = math.ceil(max(height, width) / 8)
-    return [min(math.ceil(max(value, 0.0)), cap) for value in overshoot.tolist()]
+    return [min(math.ceil(max(value, 0.0)), cap) for value in overshoots]
 
 
 def _quantile(values: Tensor, selected: Tensor, q: float) -> Tensor:

@@ -7,6 +7,7 @@ from evseg_torch.level_two.data_term import (
     NORMALIZATIONS,
     DataCost,
     _margins,
+    _overshoots,
     _select_by_kthvalue,
     _select_by_partition,
     data_cost,
@@ -108,10 +109,22 @@ class TestDataCostBatch:
                 assert torch.equal(own, alone)
             assert torch.all(cost[row, len(window) :] == 255) and torch.all(cost[row, :, len(pool) :] == 255)
 
-    @pytest.mark.parametrize("margin", [None, 0, 3])
-    def test_compiled_images_equal_the_tensor_code(self, margin, monkeypatch):
+    @pytest.mark.parametrize(
+        ("margin", "floors"),
+        [
+            (None, (0.9, 0.75)),
+            (0, (0.9, 0.75)),
+            (3, (0.9, 0.75)),
+            (None, (None, 0.5)),
+            (None, (0.6, None)),
+            (None, (None, None)),
+        ],
+    )
+    def test_compiled_images_equal_the_tensor_code(self, margin, floors, monkeypatch):
         # Where Numba is installed, per-polarity images in "relative" normalisation are splatted, blurred and
-        # read by one compiled pass (data_term_kernel): the same costs bit for bit, batched and alone.
+        # read by one compiled pass, their margins and costs by compiled loops (data_term_kernel): the same
+        # costs bit for bit, batched and alone, with or without either floor, and with a model given twice
+        # (each event's best value then comes from two models: the first is its owner, as torch's max).
         pytest.importorskip("numba")
         from evseg_torch.level_two import data_term
         from evseg_torch.synthetic import make_scene
@@ -126,13 +139,21 @@ class TestDataCostBatch:
         scene = make_scene((45, 60), 0.03, 2, rng=0, n_events=3000)
         dense = to_torch(scene.events)
         kwargs = {"normalization": "relative", "polarity": True, "margin": margin, "sigma": 0.65}
+        kwargs |= {"floor_quantile": floors[0], "pool_floor_quantile": floors[1]}
 
         def costs():
             found = [data_cost(Translation((32, 40)), batch_windows(windows), params, valid=valid, **kwargs)]
             found += [
                 data_cost(Translation((32, 40)), w, p, **kwargs) for w, p in zip(windows, pools, strict=True)
             ]
-            pool = torch.tensor([[100.0, -50.0, 1.0, -2.0], [0.0, 0.0, 0.0, 0.0], [-300.0, 20.0, 0.0, 5.0]])
+            pool = torch.tensor(
+                [
+                    [100.0, -50.0, 1.0, -2.0],
+                    [0.0, 0.0, 0.0, 0.0],
+                    [-300.0, 20.0, 0.0, 5.0],
+                    [0.0, 0.0, 0.0, 0.0],
+                ]
+            )
             return [*found, data_cost(Affine4((45, 60)), dense, pool, **kwargs)]
 
         compiled = costs()
@@ -155,8 +176,12 @@ class TestDataCostBatch:
         model = Translation((32, 40))
         margins = [
             _margins(
-                warp_events(model, w.xy, w.t, p)[None],
-                torch.ones(1, len(p), len(w), dtype=torch.bool),
+                _overshoots(
+                    warp_events(model, w.xy, w.t, p)[None],
+                    torch.ones(1, len(p), len(w), dtype=torch.bool),
+                    32,
+                    40,
+                ).tolist(),
                 32,
                 40,
             )
