@@ -8,6 +8,4 @@ try:
     import numba  # noqa: F401
 except ImportError:
     root = Path(__file__).parent
-    collect_ignore += [
-        str(path.relative_to(root)) for path in (root / "evseg_torch/level_two").glob("*_kernel.py")
-    ]
+    collect_ignore += [str(path.relative_to(root)) for path in (root / "evseg_torch").glob("*/*_kernel.py")]

@@ -43,8 +43,9 @@ shows up.
 
 Speed: the graphs number the nodes in reverse Cuthill-McKee order, computed once per edge set (see
 :class:`_Layout`; a :class:`PottsGraph` from :func:`potts_graph` carries it across calls), and are
-built from precomputed edge arrays with a handful of vectorised passes per move; the maximum flow
-itself (Boykov-Kolmogorov, single-threaded) takes most of the time.
+built from precomputed edge arrays with a handful of vectorised passes per move, or two compiled loops
+where Numba is installed (:mod:`~evseg_torch.graphcut.expansion_kernel`, the same graphs bit for bit);
+the maximum flow itself (Boykov-Kolmogorov, single-threaded) takes most of the time.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from evseg_torch.compiled import compiled_step
 from evseg_torch.errors import EvsegError, ShapeError
 
 __all__ = [
@@ -386,50 +388,11 @@ def _add_label_costs(graph, label_cost, member_label, members, n_groups) -> None
     )
 
 
-def _retained_labels(
-    problem: _Problem,
-    labels: np.ndarray,
-    alpha: int,
-    keep_data: np.ndarray,
-    tail_label: np.ndarray,
-    head_label: np.ndarray,
-    boundary_weight: np.ndarray,
-) -> np.ndarray:
-    """The labels that every optimal α-move keeps in use; their label costs are constants of the move.
-
-    A move drops a label ``l != α`` only by moving all of ``l``'s nodes to α. Against the same move with
-    those nodes kept, that raises the data cost by the sum of ``U[:, α] - U[:, l]`` over them, lowers the
-    Potts energy by at most the weight of ``l``'s boundary (edges inside ``l`` cost nothing either way,
-    edges leaving it at most their weight) and saves ``h_l``. When the rise exceeds the other two, no
-    optimal move drops ``l``.
-
-    Args:
-        problem: the energy.
-        labels: current labels :math:`(N,)`.
-        alpha: the expanding label.
-        keep_data: each node's data cost for its current label, :math:`(N,)`.
-        tail_label: labels of the layout's edge tails, :math:`(E',)`.
-        head_label: labels of the layout's edge heads, :math:`(E',)`.
-        boundary_weight: the layout's edge weights where the ends' labels differ, else 0, :math:`(E',)`.
-
-    Returns:
-        bool :math:`(L,)`.
-    """
-    n_labels = problem.n_labels
-    rise = np.bincount(labels, weights=problem.unary[:, alpha] - keep_data, minlength=n_labels)
-    boundary = np.bincount(tail_label, weights=boundary_weight, minlength=n_labels) + np.bincount(
-        head_label, weights=boundary_weight, minlength=n_labels
-    )
-    return rise - boundary > problem.label_cost
-
-
-def _expand(problem: _Problem, labels: np.ndarray, alpha: int) -> np.ndarray:
-    """Best α-expansion of ``labels`` ignoring α's label cost, by one minimum cut (new array)."""
+def _move_terms(problem: _Problem, labels: np.ndarray, alpha: int):
+    """The arrays of one α-move: the NumPy form of :func:`~evseg_torch.graphcut.expansion_kernel.move_terms`
+    (the same returns, bit for bit)."""
     layout = problem.layout
-    movable = np.flatnonzero(labels != alpha)
-    if not len(movable):
-        return labels.copy()
-    n_nodes = len(labels)
+    n_nodes, n_labels = problem.unary.shape
     tail_label = labels[layout.tail]
     head_label = labels[layout.head]
     head_movable = head_label != alpha
@@ -444,27 +407,73 @@ def _expand(problem: _Problem, labels: np.ndarray, alpha: int) -> np.ndarray:
     keep_cost = keep_data + np.bincount(
         np.where(head_movable, layout.head, layout.tail), weights=boundary_weight, minlength=n_nodes
     )
+    rise = np.bincount(labels, weights=problem.unary[:, alpha] - keep_data, minlength=n_labels)
+    boundary = np.bincount(tail_label, weights=boundary_weight, minlength=n_labels) + np.bincount(
+        head_label, weights=boundary_weight, minlength=n_labels
+    )
+    pair_weight = layout.weight.take(pair)
+    pairs = (
+        layout.graph_tail.take(pair),
+        layout.graph_head.take(pair),
+        pair_weight,
+        np.where(differ.take(pair), 0.0, pair_weight),
+    )
+    movable = np.flatnonzero(labels != alpha)
+    moving = (movable, layout.node_id.take(movable), problem.unary[movable, alpha], keep_cost.take(movable))
+    return rise - boundary, np.bincount(labels, minlength=n_labels), pairs, moving
 
-    counts = np.bincount(labels, minlength=problem.n_labels)
-    retained = _retained_labels(problem, labels, alpha, keep_data, tail_label, head_label, boundary_weight)
-    charged = (counts > 0) & (problem.label_cost > 0) & ~retained
+
+def _retained_labels(problem: _Problem, slack: np.ndarray) -> np.ndarray:
+    """The labels that every optimal α-move keeps in use; their label costs are constants of the move.
+
+    A move drops a label ``l != α`` only by moving all of ``l``'s nodes to α. Against the same move with
+    those nodes kept, that raises the data cost by the sum of ``U[:, α] - U[:, l]`` over them, lowers the
+    Potts energy by at most the weight of ``l``'s boundary (edges inside ``l`` cost nothing either way,
+    edges leaving it at most their weight) and saves ``h_l``. When the rise exceeds the other two, no
+    optimal move drops ``l``.
+
+    Args:
+        problem: the energy.
+        slack: per label, the data-cost rise of moving all its nodes to α minus the weight of its
+            boundary, :math:`(L,)` (from the move's terms).
+
+    Returns:
+        bool :math:`(L,)`.
+    """
+    return slack > problem.label_cost
+
+
+def _expand(problem: _Problem, labels: np.ndarray, alpha: int) -> np.ndarray:
+    """Best α-expansion of ``labels`` ignoring α's label cost, by one minimum cut (new array)."""
+    layout = problem.layout
+    if not np.any(labels != alpha):
+        return labels.copy()
+    compiled = compiled_step("graphcut.expansion_kernel.move_terms")
+    if compiled is None:
+        terms = _move_terms(problem, labels, alpha)
+    else:
+        arrays = (
+            layout.tail,
+            layout.head,
+            layout.weight,
+            layout.graph_tail,
+            layout.graph_head,
+            layout.node_id,
+        )
+        terms = compiled(labels, alpha, problem.unary, *arrays)
+    slack, counts, (pair_tail, pair_head, forward, backward), (movable, moving, to_alpha, to_keep) = terms
+
+    charged = (counts > 0) & (problem.label_cost > 0) & ~_retained_labels(problem, slack)
     charged[alpha] = False
     members = np.flatnonzero(charged[labels[layout.graph_order]])
     n_groups = -(-counts // _GROUP_SIZE) * charged
     n_charged = int(np.count_nonzero(charged))
     n_aux = n_charged + int(n_groups.sum())
 
-    graph = maxflow.Graph[float](n_nodes + n_aux, len(pair) + len(members) + n_aux)
-    graph.add_nodes(n_nodes)
-    pair_weight = layout.weight.take(pair)
-    graph.add_edges(
-        layout.graph_tail.take(pair),
-        layout.graph_head.take(pair),
-        pair_weight,
-        np.where(differ.take(pair), 0.0, pair_weight),
-    )
-    moving = layout.node_id.take(movable)
-    graph.add_grid_tedges(moving, problem.unary[movable, alpha], keep_cost.take(movable))
+    graph = maxflow.Graph[float](len(labels) + n_aux, len(pair_tail) + len(members) + n_aux)
+    graph.add_nodes(len(labels))
+    graph.add_edges(pair_tail, pair_head, forward, backward)
+    graph.add_grid_tedges(moving, to_alpha, to_keep)
     if n_charged:
         _add_label_costs(graph, problem.label_cost, labels[layout.graph_order[members]], members, n_groups)
     graph.maxflow()

@@ -18,10 +18,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from evseg_torch.compiled import compiled_step
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one
 from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
-from evseg_torch.level_two.compiled import compiled_step
 from evseg_torch.level_two.contrast import (
     DEFAULT_COLLAPSE_WEIGHT,
     MIN_AREA,
@@ -60,7 +60,7 @@ def resolve_fit_backend(backend: str) -> Callable | None:
         raise ConfigError(f"fit_backend must be one of {FIT_BACKENDS}, got {backend!r}")
     if backend == "torch":
         return None
-    kernel = compiled_step("fit_kernel.loss_and_grad")
+    kernel = compiled_step("level_two.fit_kernel.loss_and_grad")
     if kernel is None and backend == "numba":
         raise ConfigError("fit_backend 'numba' needs the numba package: pip install 'evseg-torch[fast]'")
     return kernel

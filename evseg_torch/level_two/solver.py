@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evseg_torch.level_two.compiled import compiled_step
+from evseg_torch.compiled import compiled_step
 
 Evaluate = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 """``evaluate(rows, x)``: the losses :math:`(R,)` and gradients :math:`(R, P)` of problems ``rows``
@@ -100,7 +100,7 @@ def lbfgs(
     Returns:
         The final values :math:`(C, P)`, on the device and in the dtype of ``start``.
     """
-    run = compiled_step("solver_kernel.lbfgs") or _lbfgs
+    run = compiled_step("level_two.solver_kernel.lbfgs") or _lbfgs
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         found = run(_Evaluations(evaluate, start), _as_array(start), max_iter, lr, tol)
     return torch.as_tensor(found, device=start.device)

@@ -6,7 +6,7 @@ import pytest
 
 from evseg_torch.errors import EvsegError, ShapeError
 from evseg_torch.graphcut import ExpansionResult, GraphCutError, alpha_expansion, labeling_energy
-from evseg_torch.graphcut.alpha_expansion import _expand, _prepare, _retained_labels, potts_graph
+from evseg_torch.graphcut.alpha_expansion import _expand, _move_terms, _prepare, _retained_labels, potts_graph
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic import make_scene
 
@@ -128,11 +128,7 @@ class TestRetainedLabels:
 
     @staticmethod
     def _retained(problem, labels, alpha):
-        layout = problem.layout
-        tail_label, head_label = labels[layout.tail], labels[layout.head]
-        keep_data = problem.unary[np.arange(len(labels)), labels]
-        boundary_weight = layout.weight * (tail_label != head_label)
-        return _retained_labels(problem, labels, alpha, keep_data, tail_label, head_label, boundary_weight)
+        return _retained_labels(problem, _move_terms(problem, labels, alpha)[0])
 
     @pytest.mark.parametrize("seed", range(20))
     def test_no_optimal_move_drops_a_retained_label(self, seed):
@@ -475,3 +471,43 @@ class TestPottsGraph:
             potts_graph(np.array([[0, 1]]), n_nodes=-1)
         with pytest.raises(GraphCutError, match="index nodes"):
             potts_graph(np.array([[0, 5]]), n_nodes=2)
+
+
+class TestCompiledMoves:
+    """Where Numba is installed, each move's graph comes from expansion_kernel: the same arrays, byte for
+    byte (a sum taken in another order shows up as a different byte)."""
+
+    @pytest.mark.parametrize("seed", range(6))
+    def test_move_terms_equal_numpy(self, seed):
+        kernel = pytest.importorskip("evseg_torch.graphcut.expansion_kernel")
+        rng = np.random.default_rng(seed)
+        points = rng.uniform(0, 10, size=(300, 2))
+        unary = rng.uniform(-1, 5, size=(300, 4))
+        outlier = (2.0, 1.0) if seed % 2 else (None, 0.0)
+        problem = _prepare(unary, _knn_edges(points, 5), None, 0.7, rng.uniform(0, 9, size=4), *outlier)
+        layout = problem.layout
+        labels = rng.integers(0, problem.n_labels - 1, size=300)  # the last label unused
+        edges = (layout.tail, layout.head, layout.weight, layout.graph_tail, layout.graph_head)
+        for alpha in range(problem.n_labels):
+            found = kernel.move_terms(labels, alpha, problem.unary, *edges, layout.node_id)
+            expected = _move_terms(problem, labels, alpha)
+            for got, want in zip(_flat(found), _flat(expected), strict=True):
+                assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+
+    def test_labellings_equal_numpy(self, monkeypatch):
+        pytest.importorskip("numba")
+        rng = np.random.default_rng(5)
+        points = rng.uniform(0, 10, size=(500, 2))
+        unary = rng.uniform(0, 1, size=(500, 5))
+        kwargs = dict(smoothness=0.4, label_cost=rng.uniform(1.0, 20.0, size=5), max_cycles=3, rng=1)
+        compiled = alpha_expansion(unary, _knn_edges(points, 6), **kwargs)
+        monkeypatch.setattr(alpha_expansion_module, "compiled_step", lambda name: None)
+        numpy = alpha_expansion(unary, _knn_edges(points, 6), **kwargs)
+        np.testing.assert_array_equal(compiled.labels, numpy.labels)
+        assert compiled.energy_history == numpy.energy_history
+
+
+def _flat(terms):
+    """The arrays of a move's terms, nested tuples flattened."""
+    for item in terms:
+        yield from _flat(item) if isinstance(item, tuple) else [np.asarray(item)]
