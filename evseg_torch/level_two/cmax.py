@@ -230,7 +230,8 @@ class ContrastMaximization(nn.Module):
         warp = LinearWarp.build(self.model, events, with_area=self.collapse_weight > 0)
         extent = np.tile(np.array(self.sensor_size, dtype=np.int64), (len(params), 1))
         seed = -torch.ones(len(params))
-        return kernel(warp, params, weights, extent, self.sigma, self.collapse_weight, MIN_AREA, seed)[0]
+        args = (self.sigma, self.collapse_weight, MIN_AREA, seed)
+        return kernel(warp, params, weights, extent, *args, gradient=False)[0]
 
     def _kernel_for(self, xy: Tensor) -> Callable | None:
         """The compiled evaluation for clusters at positions ``xy``: only float32 fits on the CPU take it;

@@ -42,7 +42,8 @@ def loss_and_grad(
     collapse_weight: float,
     min_area: float,
     seed: Tensor,
-) -> tuple[Tensor, Tensor]:
+    gradient: bool = True,
+) -> tuple[Tensor, Tensor | None]:
     """``seed`` times each cluster's image variance, and its gradient in the parameters.
 
     Args:
@@ -56,9 +57,10 @@ def loss_and_grad(
         collapse_weight: exponent γ of the event-collapse votes ``max(area, min_area) ** γ``; 0: none.
         min_area: the area element's floor.
         seed: :math:`(R,)`, the derivative of the loss in the variance.
+        gradient: ``False`` for the losses alone (the same values; the backward pass is skipped).
 
     Returns:
-        The losses :math:`(R,)` and their gradients :math:`(R, P)`.
+        The losses :math:`(R,)` and their gradients :math:`(R, P)` (``None`` without ``gradient``).
     """
     rows, n_params = params.shape
     loss = np.empty(rows, np.float32)
@@ -75,8 +77,9 @@ def loss_and_grad(
         seed.contiguous().numpy(),
         loss,
         grad,
+        gradient,
     )
-    return torch.from_numpy(loss), torch.from_numpy(grad)
+    return torch.from_numpy(loss), torch.from_numpy(grad) if gradient else None
 
 
 def blur_taps(sigma: float) -> np.ndarray:
@@ -91,7 +94,7 @@ def blur_taps(sigma: float) -> np.ndarray:
 
 
 @njit(cache=True)
-def _loss_and_grad(xy, maps, params, weights, extent, taps, gamma, min_area, seed, loss, grad):
+def _loss_and_grad(xy, maps, params, weights, extent, taps, gamma, min_area, seed, loss, grad, gradient):
     n_params, rows, n_events, n_channels = maps.shape
     moved = np.empty((n_events, n_channels), np.float32)
     grad_moved = np.empty((n_events, n_channels), np.float32)
@@ -116,6 +119,8 @@ def _loss_and_grad(xy, maps, params, weights, extent, taps, gamma, min_area, see
         flat -= mean
         square = _sum(flat, flat, True)
         loss[r] = seed[r] * np.float32(square / count)
+        if not gradient:
+            continue
         # d loss / d image = seed 2 (B - mean) / count, blurred back (the mean carries no gradient).
         flat *= np.float32(2.0) * seed[r] / np.float32(count)
         _blur(blurred, scratch, image, taps)

@@ -77,6 +77,15 @@ def test_kernel_clusters_are_independent_bit_for_bit():
     assert torch.equal(loss[2:3], alone_loss) and torch.equal(grad[2:3], alone_grad)
 
 
+def test_losses_alone_equal_the_losses_with_gradients():
+    # Discovery scores its regions by the losses alone: the backward pass is skipped, the losses are the same.
+    warp, weights, params, extent, seed = _clusters(Affine4(CANVAS))
+    args = (warp, params, weights, extent, 1.0, 0.375, MIN_AREA, seed)
+    loss, grad = fit_kernel.loss_and_grad(*args)
+    alone, none = fit_kernel.loss_and_grad(*args, gradient=False)
+    assert torch.equal(alone, loss) and none is None and grad is not None
+
+
 def test_corner_and_clamp_follow_python_semantics():
     # The compiled steps' tap and clamp helpers (written with np.floor and comparisons for speed) give
     # math.floor's taps and min(max(...))'s values, signed zeros and ties included.
