@@ -22,6 +22,7 @@ from numba import njit
 from torch import Tensor
 
 from evseg_torch.level_two.fit_kernel import _ONE, _ZERO, _blur, _corner, blur_taps
+from evseg_torch.level_two.solver_kernel import _maximum
 
 _MAX_COST = np.float32(255.0)
 _TINY = np.finfo(np.float32).tiny
@@ -146,17 +147,10 @@ def _overshoot(warped, real, last_col, last_row, out):
             for i in range(n_events):
                 if real[b, k, i]:
                     x, y = warped[b, k, i, 0], warped[b, k, i, 1]
-                    beyond = _nan_max(_nan_max(-x, x - last_col), _nan_max(-y, y - last_row))
-                    largest = _nan_max(largest, beyond)
+                    # torch.maximum's NaN propagation, as the tensor code's overshoot.
+                    beyond = _maximum(_maximum(-x, x - last_col), _maximum(-y, y - last_row))
+                    largest = _maximum(largest, beyond)
         out[b] = largest
-
-
-@njit(cache=True)
-def _nan_max(a, b):
-    """``torch.maximum`` of two scalars: NaN if either is."""
-    if a != a or b != b:
-        return a + b
-    return a if a >= b else b
 
 
 def relative_costs(

@@ -200,11 +200,11 @@ def cluster_groups(
         ``{cluster: (group, n_groups)}`` of :func:`object_groups` for the events ``labels == cluster``
         in index order.
     """
-    spread = [coverage(xy[labels == cluster], sensor_size) for cluster in range(len(warped))]
+    members_of = [np.flatnonzero(labels == cluster) for cluster in range(len(warped))]
+    spread = [coverage(xy[members], sensor_size) for members in members_of]
     background = int(np.argmax(spread))
     groups = {}
-    for cluster in range(len(warped)):
-        members = np.flatnonzero(labels == cluster)
+    for cluster, members in enumerate(members_of):
         if cluster != background and spread[cluster] < _BACKGROUND_SPREAD:  # not spans_view
             groups[cluster] = object_groups(
                 warped[cluster, members], polarity[members], sensor_size, radius=radius, min_events=min_events
