@@ -291,7 +291,8 @@ class LevelTwoConfig(_Section):
             small object's sharper model can pay.
         discovery_rounds: how many times per window level two proposes new models (splits of clusters,
             unions of touching clusters, each fitted by contrast maximisation; the energy decides); 0
-            switches discovery off: the paper's level two, which only prunes. See
+            switches discovery off: the paper's level two, which only prunes. A round after the first
+            proposes only around the clusters the round before created. See
             :mod:`evseg_torch.level_two.segmenter` and :mod:`evseg_torch.level_two.discovery`.
         discovery_min_events: fewest events of a region that gets a proposed model.
         discovery_residual_cost: also propose models for connected events whose own model's data cost is

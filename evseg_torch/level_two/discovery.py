@@ -16,6 +16,12 @@ regions (spatially connected groups of events on the pixel grid) are proposed:
   the 255 a fully unexplained event pays: a motion-blurred streak) are grouped, and each group of at
   least ``min_events`` is proposed.
 
+A later round (``discovery_rounds`` above 1) proposes only the regions that hold events of a cluster the
+round before created: a new cluster's halves and groups, and its unions with its neighbours (the union of
+an object's two accepted halves joins it again). Elsewhere the labelling is the one whose proposals the
+round before judged already. Its accepted proposals are labelled once: the refit and second labelling
+that follow the first round changed no figure after a later one, and cost time (``docs/objects.md``).
+
 Connectivity: an event's pixel is dilated by ``radius`` pixels (a square), so events of one sparse,
 fast object a few pixels apart join one group while separate objects stay apart.
 
@@ -50,7 +56,15 @@ from evseg_torch.level_two.crops import gather_members
 from evseg_torch.level_two.window_state import Step, WindowState, subsample
 from evseg_torch.motion import MotionModel
 
-__all__ = ["Discovery", "bisect", "candidate_regions", "centroid_velocity", "recentred", "translation_params"]
+__all__ = [
+    "Discovery",
+    "bisect",
+    "candidate_regions",
+    "centroid_velocity",
+    "recentred",
+    "regions_of_new_clusters",
+    "translation_params",
+]
 
 # A proposal only needs to show whether a region has a sharper motion of its own; an even subsample of
 # this many events per region finds it, at a fraction of the cost of fitting whole regions.
@@ -109,6 +123,23 @@ def candidate_regions(
             regions.append((int(np.bincount(labels[members]).argmax()), members))
     regions.sort(key=lambda region: -len(region[1]))
     return regions
+
+
+def regions_of_new_clusters(
+    regions: list[tuple[int, np.ndarray]], labels: np.ndarray, new_clusters: np.ndarray
+) -> list[tuple[int, np.ndarray]]:
+    """The regions a later discovery round proposes: those holding an event of a cluster that the round
+    before created (module docstring).
+
+    Args:
+        regions: ``(cluster, members)`` pairs from :func:`candidate_regions`.
+        labels: cluster of each event :math:`(N,)` in ``[0, K)``.
+        new_clusters: bool :math:`(K,)`, the clusters the round before created.
+
+    Returns:
+        The kept pairs, in their order.
+    """
+    return [region for region in regions if new_clusters[labels[region[1]]].any()]
 
 
 def _connected_groups(
@@ -282,6 +313,8 @@ class Discovery:
                 residual_cost=self.config.discovery_residual_cost,
                 radius=self.config.discovery_radius,
             )
+            if state.new_clusters is not None:
+                regions = regions_of_new_clusters(regions, state.labels, state.new_clusters)
             candidate, regions = self._proposal_starts(state, regions[: self.config.discovery_max_proposals])
             candidates.append(candidate)
             state.regions = [members for _, members in regions]
@@ -305,7 +338,9 @@ class Discovery:
                 # The proposals are fitted already: the next labelling decides which are used.
                 state.proposed_from = state.params.shape[0]
                 state.params = torch.cat([state.params, proposed])
-                state.rounds_left = max(state.rounds_left, 1) + 1
+                # The first round's proposals are labelled, refitted to the events they got and labelled
+                # again; a later round's are labelled once (module docstring).
+                state.rounds_left = max(state.rounds_left, 1) + (state.new_clusters is None)
                 state.step = Step.LABEL
             else:
                 state.step = Step.STOP

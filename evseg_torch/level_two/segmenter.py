@@ -414,8 +414,12 @@ class GraphCutContrastSegmenter(nn.Module):
                 and changed_fraction(state.labels, labels, keep) <= self.config.label_tol
             )
         )
-        if state.proposed_from is not None and not np.any(keep >= state.proposed_from):
-            state.discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
+        if state.proposed_from is not None:
+            state.new_clusters = keep >= state.proposed_from
+            if not state.new_clusters.any():
+                state.discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
+        elif state.new_clusters is not None and not state.objects_on:
+            state.new_clusters = state.new_clusters[keep]
         state.proposed_from = None
         state.regions = []
         state.labels, state.keep = labels, keep

@@ -44,7 +44,9 @@ class WindowState:
     ``node_cost`` their sums per node for the graph cut (``costs_ready`` when they are set for the next
     labelling already); ``step`` (:class:`Step`) is what follows the last labelling.
     ``objects_on`` once the object phase has begun, ``splits_left`` its splits still allowed, ``regions``
-    the events of each proposal (its first support).
+    the events of each proposal (its first support); ``new_clusters`` marks the clusters that the last
+    discovery round's proposals became (``None`` before any was used), the only ones a later round
+    proposes from.
     """
 
     index: int
@@ -65,6 +67,7 @@ class WindowState:
     objects_on: bool = False
     costs_ready: bool = False
     proposed_from: int | None = None
+    new_clusters: np.ndarray | None = None
     event_cost: Tensor | None = None
     node_cost: np.ndarray | None = None
     keep: np.ndarray | None = None

@@ -9,6 +9,7 @@ from evseg_torch.level_two.discovery import (
     candidate_regions,
     centroid_velocity,
     recentred,
+    regions_of_new_clusters,
     translation_params,
 )
 from evseg_torch.motion import Affine4, Rotation3D, Translation
@@ -133,6 +134,22 @@ class TestCandidateRegions:
         # The largest cluster is never merged, even where it touches another.
         xy, labels, _ = _layout((0, (0, 20, 0, 40)), (1, (20, 30, 0, 10)))
         assert all(len(members) < len(labels) for _, members in _regions(xy, labels))
+
+    def test_a_later_round_proposes_only_around_new_clusters(self):
+        xy, labels, (_, first, second, far) = _layout(
+            (0, (0, 20, 0, 40)),
+            (1, (30, 40, 5, 15)),
+            (2, (40, 46, 5, 15)),  # touching cluster 1
+            (3, (30, 40, 30, 34)),  # far from both
+        )
+        regions = _regions(xy, labels)
+        new = np.array([False, False, True, False])
+        kept = regions_of_new_clusters(regions, labels, new)
+        # Cluster 2's own regions and its union with cluster 1; nothing of clusters 0, 1 or 3 alone.
+        assert _as_sets(kept) == [region for region in _as_sets(regions) if region[1] & set(second.tolist())]
+        assert (1, _union(first, second)) in _as_sets(kept)
+        assert all(not members & set(far.tolist()) for _, members in _as_sets(kept))
+        assert regions_of_new_clusters(regions, labels, np.zeros(4, dtype=bool)) == []
 
     def test_residual_regions(self):
         xy, labels, (_, first, second, _) = _layout(
