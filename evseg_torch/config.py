@@ -294,6 +294,10 @@ class LevelTwoConfig(_Section):
             switches discovery off: the paper's level two, which only prunes. A round after the first
             proposes only around the clusters the round before created. See
             :mod:`evseg_torch.level_two.segmenter` and :mod:`evseg_torch.level_two.discovery`.
+        carried_discovery_rounds: the pipeline's discovery rounds, at most ``discovery_rounds``, in a window
+            that carries models in (a stream's windows after its first, or given ``initial_models``): they
+            start from objects that the windows before split and joined already, and there a second round
+            cost streamed detection (``docs/objects.md``). Level two alone uses ``discovery_rounds``.
         discovery_min_events: fewest events of a region that gets a proposed model.
         discovery_residual_cost: also propose models for connected events whose own model's data cost is
             at least this (of 255); ``None`` for none. With the ``relative`` data term most background
@@ -349,6 +353,7 @@ class LevelTwoConfig(_Section):
     site_time_slices: int | None = _setting(1, at_least=1)
     label_cost_events: float | None = _setting(15000.0, above=0)
     discovery_rounds: int = _setting(1, at_least=0)
+    carried_discovery_rounds: int = _setting(1, at_least=0)
     discovery_min_events: int = _setting(100, at_least=1)
     discovery_residual_cost: float | None = _setting(None, at_least=0, at_most=255)
     discovery_radius: int = _setting(2, at_least=0)

@@ -246,8 +246,16 @@ class CascadedSegmenter(nn.Module):
             )
             for *_, fitted, _ in prepared
         ]
+        # A window that carries models in starts from objects the windows before split and joined already.
+        two = self.config.level_two
+        rounds = [
+            min(two.discovery_rounds, two.carried_discovery_rounds)
+            if models is not None and len(models)
+            else two.discovery_rounds
+            for models in initial_models
+        ]
         with torch.no_grad():
-            twos = self.level_two(batches, pools)
+            twos = self.level_two(batches, pools, discovery_rounds=rounds)
         level_two_ms = 1e3 * (time.perf_counter() - starts[-1]) / len(windows)
         return [
             self._result(item, batch, two, level_one_ms, level_two_ms, tensors)

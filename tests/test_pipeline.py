@@ -266,6 +266,24 @@ def test_extra_thresholds_join_their_pools_to_level_ones(scene):
         CascadedSegmenter(sensor_size=SIZE, extra_thresholds=1.25)
 
 
+def test_windows_that_carry_models_in_run_fewer_discovery_rounds(scene, result, monkeypatch):
+    segmenter = CascadedSegmenter(sensor_size=SIZE, discovery_rounds=2, carried_discovery_rounds=1)
+    given = []
+    forward = segmenter.level_two.forward
+
+    def spy(*args, discovery_rounds=None, **kwargs):
+        given.append(discovery_rounds)
+        return forward(*args, discovery_rounds=discovery_rounds, **kwargs)
+
+    monkeypatch.setattr(segmenter.level_two, "forward", spy)
+    segmenter.segment_batch([scene.events] * 3, None, [None, result.models, np.zeros((0, 4))])
+    assert given == [[2, 1, 2]]  # an empty stack carries nothing
+    more = CascadedSegmenter(sensor_size=SIZE, discovery_rounds=2, carried_discovery_rounds=3)
+    monkeypatch.setattr(more.level_two, "forward", spy)
+    more(scene.events, initial_models=result.models)
+    assert given[-1] == [2]  # never more than discovery_rounds
+
+
 def test_segment_batch_equals_windows_one_by_one(scene):
     segmenter = CascadedSegmenter(sensor_size=SIZE)
     others = [make_scene(SIZE, 0.03, n_objects=n, rng=10 + n).events for n in (0, 2)]

@@ -33,13 +33,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from numbers import Integral
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
 from evseg_torch.config import LevelTwoConfig, replace_settings
-from evseg_torch.errors import EventFormatError, ShapeError
+from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one, batch_windows
 from evseg_torch.graphcut.alpha_expansion import alpha_expansion
 from evseg_torch.level_two.checks import check_events, check_labels
@@ -202,6 +203,8 @@ class GraphCutContrastSegmenter(nn.Module):
         events: EventBatch | Sequence[EventBatch],
         init_params: Tensor | Sequence[Tensor],
         init_labels: Tensor | np.ndarray | Sequence | None = None,
+        *,
+        discovery_rounds: int | Sequence[int] | None = None,
     ) -> LevelTwoResult | list[LevelTwoResult]:
         r"""Segment one window, or each window of a list or of a padded batch.
 
@@ -217,6 +220,8 @@ class GraphCutContrastSegmenter(nn.Module):
             init_labels: optional initial labels :math:`(N,)` in ``[0, K)``; for several windows a list of
                 them, or for a padded batch :math:`(B, N_{max})` (padding ignored). By default each event
                 starts at its cheapest model.
+            discovery_rounds: discovery rounds of every window, or a list of one per window; by default
+                ``config.discovery_rounds`` (the pipeline gives a window that carries models in fewer).
 
         Returns:
             :class:`LevelTwoResult`, or a list of them for several windows.
@@ -225,11 +230,13 @@ class GraphCutContrastSegmenter(nn.Module):
             EventFormatError: if ``events`` is not an EventBatch (or a list of them) or a window is empty.
             ShapeError: if ``init_params`` or ``init_labels`` has the wrong shape, or labels out of range.
             ModelError: if ``init_params`` hold NaN or inf.
+            ConfigError: if a ``discovery_rounds`` is not a non-negative integer.
         """
         if isinstance(events, EventBatch) and not events.is_batched:
-            return self._segment(batch_of_one(check_events(events)), [events], [init_params], [init_labels])[
-                0
-            ]
+            rounds = self._discovery_rounds(discovery_rounds, 1)
+            return self._segment(
+                batch_of_one(check_events(events)), [events], [init_params], [init_labels], rounds
+            )[0]
         if isinstance(events, EventBatch):
             windows = [check_events(window) for window in events.unbatch()]
             batch = events
@@ -257,7 +264,20 @@ class GraphCutContrastSegmenter(nn.Module):
             raise ShapeError(
                 f"got {count} windows but {len(pools)} pools and {len(labels)} initial labellings"
             )
-        return self._segment(batch, windows, pools, labels) if count else []
+        rounds = self._discovery_rounds(discovery_rounds, count)
+        return self._segment(batch, windows, pools, labels, rounds) if count else []
+
+    def _discovery_rounds(self, rounds: int | Sequence[int] | None, count: int) -> list[int]:
+        """Each window's discovery rounds, checked."""
+        if rounds is None:
+            return [self.config.discovery_rounds] * count
+        each = list(rounds) if isinstance(rounds, Sequence) else [rounds] * count
+        if len(each) != count:
+            raise ShapeError(f"got {count} windows but {len(each)} discovery_rounds")
+        for value in each:
+            if isinstance(value, bool) or not isinstance(value, Integral) or value < 0:
+                raise ConfigError(f"discovery_rounds must be non-negative integers, got {value!r}")
+        return [int(value) for value in each]
 
     def contrast_loss(self, events: EventBatch, params: Tensor, labels: Tensor | None = None) -> Tensor:
         r"""Differentiable negative contrast of each cluster's own events under its model.
@@ -293,13 +313,13 @@ class GraphCutContrastSegmenter(nn.Module):
         )
 
     def _segment(
-        self, batch: EventBatch, windows: list[EventBatch], pools: list, init_labels: list
+        self, batch: EventBatch, windows: list[EventBatch], pools: list, init_labels: list, rounds: list[int]
     ) -> list[LevelTwoResult]:
         """Segment the windows of ``batch`` together; on the CPU in groups of consecutive windows."""
         budget = _CPU_BATCH_EVENTS if batch.xy.device.type == "cpu" else None
         groups = chunks([len(window) for window in windows], budget)
         if len(groups) == 1:
-            return self._segment_together(batch, windows, pools, init_labels)
+            return self._segment_together(batch, windows, pools, init_labels, rounds)
         results = []
         for group in groups:
             own = [windows[index] for index in group]
@@ -308,18 +328,21 @@ class GraphCutContrastSegmenter(nn.Module):
                 own,
                 [pools[index] for index in group],
                 [init_labels[index] for index in group],
+                [rounds[index] for index in group],
             )
         return results
 
     def _segment_together(
-        self, batch: EventBatch, windows: list[EventBatch], pools: list, init_labels: list
+        self, batch: EventBatch, windows: list[EventBatch], pools: list, init_labels: list, rounds: list[int]
     ) -> list[LevelTwoResult]:
         """The block-coordinate descent of every window of ``batch``, in lockstep (module docstring)."""
         clock = StageClock(len(windows))
         states = []
-        for index, (events, pool, labels) in enumerate(zip(windows, pools, init_labels, strict=True)):
+        for index, (events, pool, labels, n_rounds) in enumerate(
+            zip(windows, pools, init_labels, rounds, strict=True)
+        ):
             states.append(
-                start_window(index, events, pool, labels, self.model, self.sensor_size, self.config)
+                start_window(index, events, pool, labels, self.model, self.sensor_size, self.config, n_rounds)
             )
             clock.lap("graph", states[-1:])
         site_index = padded_rows([state.sites for state in states], batch.t.shape[1], device=batch.xy.device)

@@ -102,6 +102,7 @@ def start_window(
     model: MotionModel,
     sensor_size: tuple[int, int],
     config: LevelTwoConfig,
+    discovery_rounds: int,
 ) -> WindowState:
     """A window's graph (:mod:`~evseg_torch.level_two.graph`) and starting point, its inputs checked."""
     params = check_params(init_params, events, model)
@@ -134,7 +135,7 @@ def start_window(
         labels=labels,
         node_labels=node_labels,
         rounds_left=config.n_iter_segmentation,
-        discoveries_left=config.discovery_rounds,
+        discoveries_left=discovery_rounds,
         splits_left=config.object_splits,
     )
 

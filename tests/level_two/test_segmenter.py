@@ -369,6 +369,26 @@ class TestBatches:
         limit = segmenter.config.n_iter_segmentation + segmenter.config.discovery_rounds * 2 + objects
         assert all(1 <= len(result.energy_history) <= limit for result in listed)
 
+    def test_discovery_rounds_per_window(self, batch_scenes):
+        # Each window of a batch may have its own discovery rounds (the pipeline gives a window that carries
+        # models in fewer), and gets what a segmenter configured with them gives it alone.
+        model, windows, pools = batch_scenes
+        rounds = [0, 2, 1, 2]
+        batched = GraphCutContrastSegmenter(model, BATCH_SIZE)(windows, pools, discovery_rounds=rounds)
+        for window, pool, n_rounds, result in zip(windows, pools, rounds, batched, strict=True):
+            alone = GraphCutContrastSegmenter(model, BATCH_SIZE, discovery_rounds=n_rounds)(window, pool)
+            assert torch.equal(result.labels, alone.labels) and torch.equal(result.params, alone.params)
+            assert result.energy_history == alone.energy_history
+        segmenter = GraphCutContrastSegmenter(model, BATCH_SIZE, discovery_rounds=0)
+        overridden = segmenter(windows[1], pools[1], discovery_rounds=2)  # one window, the call's rounds
+        assert torch.equal(overridden.labels, batched[1].labels)
+        assert overridden.energy_history == batched[1].energy_history
+        with pytest.raises(ShapeError, match="discovery_rounds"):
+            segmenter(windows, pools, discovery_rounds=[1, 1])
+        for bad in (-1, True, 1.5):
+            with pytest.raises(ConfigError, match="discovery_rounds"):
+                segmenter(windows[0], pools[0], discovery_rounds=bad)
+
     def test_groups_and_chunks_on_the_cpu(self, batch_scenes, monkeypatch):
         # On the CPU a large batch is segmented in groups of windows, and its data terms are computed in
         # chunks: the results are the same.
@@ -462,7 +482,7 @@ class TestDiscovery:
         monkeypatch.setattr(Discovery, "_proposal_starts", spy)
         scene, events, _, pool = _missing_motion_window(4)
         truth = torch.as_tensor(np.stack([motion.params for motion in scene.motions]), dtype=torch.float32)
-        segmenter = GraphCutContrastSegmenter(scene.motions[0].model, DISCOVERY_SIZE)
+        segmenter = GraphCutContrastSegmenter(scene.motions[0].model, DISCOVERY_SIZE, discovery_rounds=1)
         for start, fitted in ((pool, True), (truth, False)):
             proposed.clear()
             segmenter(events, start)
