@@ -353,7 +353,7 @@ class LevelTwoConfig(_Section):
     site_time_slices: int | None = _setting(1, at_least=1)
     label_cost_events: float | None = _setting(15000.0, above=0)
     discovery_rounds: int = _setting(2, at_least=0)
-    carried_discovery_rounds: int = _setting(2, at_least=0)
+    carried_discovery_rounds: int = _setting(1, at_least=0)
     discovery_min_events: int = _setting(100, at_least=1)
     discovery_residual_cost: float | None = _setting(None, at_least=0, at_most=255)
     discovery_radius: int = _setting(2, at_least=0)
