@@ -20,7 +20,8 @@ A later round (``discovery_rounds`` above 1) proposes only the regions that hold
 round before created: a new cluster's halves and groups, and its unions with its neighbours (the union of
 an object's two accepted halves joins it again). Elsewhere the labelling is the one whose proposals the
 round before judged already. Its accepted proposals are labelled once: the refit and second labelling
-that follow the first round changed no figure after a later one, and cost time (``docs/objects.md``).
+that follow the first round gained nothing measurable after a later one, and cost time
+(``docs/objects.md``).
 
 Connectivity: an event's pixel is dilated by ``radius`` pixels (a square), so events of one sparse,
 fast object a few pixels apart join one group while separate objects stay apart.

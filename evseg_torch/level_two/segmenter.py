@@ -442,6 +442,8 @@ class GraphCutContrastSegmenter(nn.Module):
             if not state.new_clusters.any():
                 state.discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
         elif state.new_clusters is not None and not state.objects_on:
+            # Followed through the descent's renumbering; the object phase, whose splits add clusters,
+            # comes after the last round and no longer needs it.
             state.new_clusters = state.new_clusters[keep]
         state.proposed_from = None
         state.regions = []

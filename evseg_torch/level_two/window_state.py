@@ -45,8 +45,8 @@ class WindowState:
     labelling already); ``step`` (:class:`Step`) is what follows the last labelling.
     ``objects_on`` once the object phase has begun, ``splits_left`` its splits still allowed, ``regions``
     the events of each proposal (its first support); ``new_clusters`` marks the clusters that the last
-    discovery round's proposals became (``None`` before any was used), the only ones a later round
-    proposes from.
+    discovery round's proposals became (``None`` until a round's proposals are labelled), the only ones a
+    later round proposes from.
     """
 
     index: int
