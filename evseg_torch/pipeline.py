@@ -247,11 +247,11 @@ class CascadedSegmenter(nn.Module):
             for *_, fitted, _ in prepared
         ]
         # A window that carries models in starts from objects the windows before split and joined already.
-        two = self.config.level_two
+        settings = self.config.level_two
         rounds = [
-            min(two.discovery_rounds, two.carried_discovery_rounds)
-            if models is not None and len(models)
-            else two.discovery_rounds
+            min(settings.discovery_rounds, settings.carried_discovery_rounds)
+            if _carries(models)
+            else settings.discovery_rounds
             for models in initial_models
         ]
         with torch.no_grad():
@@ -416,7 +416,7 @@ class CascadedSegmenter(nn.Module):
         cfg = self.config
         start = time.perf_counter()
         given = None if initial_models is None else self.motion.check_instances(initial_models)
-        carried = given is not None and len(given) > 0
+        carried = _carries(given)
         replaced = carried and cfg.level_one.initial_models == "replace"
         if replaced or events["t"][-1] == events["t"][0] or min(self.sensor_size) < _MIN_FEATURE_SIZE:
             empty = np.zeros((0, 2))
@@ -457,6 +457,11 @@ class CascadedSegmenter(nn.Module):
 
     def _device_dtype(self) -> tuple[torch.device, torch.dtype]:
         return self._anchor.device, self._anchor.dtype
+
+
+def _carries(models) -> bool:
+    """Whether a window carries models in: a stream's windows after its first, or given ``initial_models``."""
+    return models is not None and len(models) > 0
 
 
 def _reference_us(events: np.ndarray, t_ref) -> int:

@@ -63,7 +63,6 @@ __all__ = [
     "candidate_regions",
     "centroid_velocity",
     "recentred",
-    "regions_of_new_clusters",
     "translation_params",
 ]
 
@@ -83,6 +82,7 @@ def candidate_regions(
     min_events: int,
     residual_cost: float | None,
     radius: int,
+    around: np.ndarray | None = None,
 ) -> list[tuple[int, np.ndarray]]:
     """Regions of events to propose models for (module docstring).
 
@@ -95,6 +95,8 @@ def candidate_regions(
         residual_cost: events costing at least this under their own model are residual; ``None``
             proposes no residual regions.
         radius: dilation of each event's pixel when joining events into regions.
+        around: bool :math:`(K,)`, for a later round: only the regions holding events of these clusters
+            (the ones the round before created); ``None`` for all.
 
     Returns:
         ``(cluster, members)`` pairs: the cluster a region came from (the larger of a merged pair, the
@@ -103,7 +105,8 @@ def candidate_regions(
     """
     regions = []
     n_clusters = int(labels.max()) + 1 if len(labels) else 0
-    for cluster in range(n_clusters):
+    around = np.ones(n_clusters, dtype=bool) if around is None else around
+    for cluster in np.flatnonzero(around[:n_clusters]).tolist():
         groups = _connected_groups(xy, labels == cluster, sensor_size, min_events, radius)
         if len(groups) == 1:
             # Not the largest cluster: it spans the view (the background), and a model of half of it
@@ -112,6 +115,8 @@ def candidate_regions(
         regions += [(cluster, members) for members in groups]
     for first in range(1, n_clusters):
         for second in range(first + 1, n_clusters):
+            if not (around[first] or around[second]):
+                continue
             pair = (labels == first) | (labels == second)
             touching = any(
                 len(np.unique(labels[members])) == 2
@@ -121,26 +126,10 @@ def candidate_regions(
                 regions.append((first, np.flatnonzero(pair)))
     if residual_cost is not None:
         for members in _connected_groups(xy, own_cost >= residual_cost, sensor_size, min_events, radius):
-            regions.append((int(np.bincount(labels[members]).argmax()), members))
+            if around[labels[members]].any():
+                regions.append((int(np.bincount(labels[members]).argmax()), members))
     regions.sort(key=lambda region: -len(region[1]))
     return regions
-
-
-def regions_of_new_clusters(
-    regions: list[tuple[int, np.ndarray]], labels: np.ndarray, new_clusters: np.ndarray
-) -> list[tuple[int, np.ndarray]]:
-    """The regions a later discovery round proposes: those holding an event of a cluster that the round
-    before created (module docstring).
-
-    Args:
-        regions: ``(cluster, members)`` pairs from :func:`candidate_regions`.
-        labels: cluster of each event :math:`(N,)` in ``[0, K)``.
-        new_clusters: bool :math:`(K,)`, the clusters the round before created.
-
-    Returns:
-        The kept pairs, in their order.
-    """
-    return [region for region in regions if new_clusters[labels[region[1]]].any()]
 
 
 def _connected_groups(
@@ -313,9 +302,8 @@ class Discovery:
                 min_events=self.config.discovery_min_events,
                 residual_cost=self.config.discovery_residual_cost,
                 radius=self.config.discovery_radius,
+                around=state.new_clusters,
             )
-            if state.new_clusters is not None:
-                regions = regions_of_new_clusters(regions, state.labels, state.new_clusters)
             candidate, regions = self._proposal_starts(state, regions[: self.config.discovery_max_proposals])
             candidates.append(candidate)
             state.regions = [members for _, members in regions]

@@ -9,7 +9,6 @@ from evseg_torch.level_two.discovery import (
     candidate_regions,
     centroid_velocity,
     recentred,
-    regions_of_new_clusters,
     translation_params,
 )
 from evseg_torch.motion import Affine4, Rotation3D, Translation
@@ -36,10 +35,17 @@ def _layout(*blocks):
     return np.concatenate(xy), np.concatenate(labels), index
 
 
-def _regions(xy, labels, own_cost=None, min_events=20, residual_cost=None, radius=2):
+def _regions(xy, labels, own_cost=None, min_events=20, residual_cost=None, radius=2, around=None):
     own_cost = np.zeros(len(labels)) if own_cost is None else own_cost
     regions = candidate_regions(
-        xy, labels, own_cost, SIZE, min_events=min_events, residual_cost=residual_cost, radius=radius
+        xy,
+        labels,
+        own_cost,
+        SIZE,
+        min_events=min_events,
+        residual_cost=residual_cost,
+        radius=radius,
+        around=around,
     )
     sizes = [len(members) for _, members in regions]
     assert sizes == sorted(sizes, reverse=True)  # largest regions first
@@ -144,12 +150,12 @@ class TestCandidateRegions:
         )
         regions = _regions(xy, labels)
         new = np.array([False, False, True, False])
-        kept = regions_of_new_clusters(regions, labels, new)
+        kept = _regions(xy, labels, around=new)
         # Cluster 2's own regions and its union with cluster 1; nothing of clusters 0, 1 or 3 alone.
         assert _as_sets(kept) == [region for region in _as_sets(regions) if region[1] & set(second.tolist())]
         assert (1, _union(first, second)) in _as_sets(kept)
         assert all(not members & set(far.tolist()) for _, members in _as_sets(kept))
-        assert regions_of_new_clusters(regions, labels, np.zeros(4, dtype=bool)) == []
+        assert _regions(xy, labels, around=np.zeros(4, dtype=bool)) == []
 
     def test_residual_regions(self):
         xy, labels, (_, first, second, _) = _layout(
@@ -172,6 +178,10 @@ class TestCandidateRegions:
         assert len(with_residual) == len(plain) + 1
         # Above every event's cost: nothing is residual.
         assert _as_sets(_regions(xy, labels, own_cost, residual_cost=250.0)) == plain
+        # A later round keeps the streak where it holds events of a new cluster (1 or 2), not elsewhere.
+        for new, kept in (([False, True, False], True), ([True, False, False], False)):
+            around = _as_sets(_regions(xy, labels, own_cost, residual_cost=150.0, around=np.array(new)))
+            assert ((2, frozenset(streak.tolist())) in around) == kept
 
     def test_radius_joins_sparse_events(self):
         # A sparse object (events 3 pixels apart) is one group at radius 2, many specks at radius 0.
