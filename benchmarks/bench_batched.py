@@ -28,6 +28,7 @@ import torch
 from evseg_torch.events import to_torch
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.synthetic import make_scene
+from evseg_torch.threads import set_threads
 
 STAGES = ("graph", "data_term", "labelling", "refit", "discovery", "images")
 
@@ -68,10 +69,10 @@ def main():
     parser.add_argument("--events", type=int, default=40_000, help="events per window, about")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (0: torch's default)")
+    parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (0: their defaults)")
     args = parser.parse_args()
     if args.threads:
-        torch.set_num_threads(args.threads)
+        set_threads(args.threads)
     device = torch.device(args.device)
     sizes = [size for size in args.batch_sizes if size <= args.windows]
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {device}")

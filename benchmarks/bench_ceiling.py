@@ -27,6 +27,7 @@ from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
 from evseg_torch.events import to_torch
 from evseg_torch.level_two.contrast import contrast_loss
 from evseg_torch.pipeline import CascadedSegmenter
+from evseg_torch.threads import set_threads
 
 PROBE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "synthetic_probe"
 
@@ -80,7 +81,7 @@ def main() -> None:
     parser.add_argument("--own", type=_seed_range, default=list(range(20)), help="default-scene seeds")
     add_overrides(parser, "flat config override, e.g. objects=false")
     args = parser.parse_args()
-    torch.set_num_threads(1)
+    set_threads(1)
     config = replace_config(SegmenterConfig(), initial_models="replace", **dict(args.set))
     # The true models are given, so the pipeline would treat the window as one that carries models in; the
     # ceiling is that of a cold window's level two, so it runs the same discovery rounds.

@@ -25,6 +25,7 @@ from evseg_torch.evaluation.eed import load_eed_sequence
 from evseg_torch.evaluation.labelled import load_labelled
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic_families import make_family_scene
+from evseg_torch.threads import set_threads
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -59,7 +60,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     before = dict(args.before or [("objects", False)])
-    torch.set_num_threads(1)
+    set_threads(1)
     configs = {"default": SegmenterConfig(), "eed": load_config(bundled_config("eed"))}
     times = {}
     for index, (name, events, size, eed) in enumerate(windows(args.hard)):
@@ -73,7 +74,9 @@ def main() -> None:
             start = time.perf_counter()
             segmenters[key](events)
             times.setdefault(name, {}).setdefault(key, []).append(1e3 * (time.perf_counter() - start))
-    print(f"{platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}")
+    print(
+        f"{platform.processor() or platform.machine()}, threads {torch.get_num_threads()} (torch and OpenCV)"
+    )
     print(f"before: {before}")
     print(f"{'windows':<16} {'n':>3} {'default ms':>10} {'before ms':>10} {'ratio':>6}")
     for name, pair in times.items():

@@ -17,13 +17,13 @@ import itertools
 from collections import defaultdict
 
 import numpy as np
-import torch
 
 from evseg_torch.cli import _seed_range
 from evseg_torch.errors import ConfigError
 from evseg_torch.metrics import match_clusters, per_object_iou
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic_families import family_kinds, make_family_scene
+from evseg_torch.threads import set_threads
 
 
 def detections(result, scene) -> dict[int, int]:
@@ -62,7 +62,7 @@ def main() -> None:
     parser.add_argument("--duration-ms", type=float, default=300.0, help="scene length (default 300 ms)")
     parser.add_argument("--batch-size", type=int, default=1, help="windows segmented together (default 1)")
     args = parser.parse_args()
-    torch.set_num_threads(1)
+    set_threads(1)
     by_kind: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
     for seed in args.seeds:
         try:

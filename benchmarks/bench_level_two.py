@@ -30,6 +30,7 @@ from evseg_torch.events import to_torch
 from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.synthetic import make_scene
+from evseg_torch.threads import set_threads
 
 
 def make_window(n_events, n_objects, n_spurious, seed):
@@ -58,7 +59,7 @@ def main():
     )
     args = parser.parse_args()
     if args.threads:
-        torch.set_num_threads(args.threads)
+        set_threads(args.threads)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device cpu")
 
     stages = ("graph", "data_term", "labelling", "refit", "images")

@@ -20,6 +20,7 @@ import torch
 from evseg_torch import CascadedSegmenter
 from evseg_torch.evaluation.eed import load_eed_sequence
 from evseg_torch.synthetic import make_scene
+from evseg_torch.threads import set_threads
 
 EED = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "eed_occlusions"
 STAGES = ("features", "level_one", "level_two", "total")
@@ -45,8 +46,8 @@ def main():
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--events", type=int, help="signal events per 30 ms window (default: generator's)")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    print(f"{cpu_name()}, torch threads {torch.get_num_threads()}")
+    set_threads(args.threads)
+    print(f"{cpu_name()}, threads {torch.get_num_threads()} (torch and OpenCV)")
     header = ("features", "level one", "level two", "total")
     print(f"{'windows':<28} {'n':>4} {'events':>7} " + " ".join(f"{h:>9}" for h in header))
     cold, reuse, sizes_cold, sizes_reuse = [], [], [], []

@@ -27,7 +27,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 import yaml
 
 from evseg_torch.cli import _seed_range
@@ -37,6 +36,7 @@ from evseg_torch.evaluation.eed import detection_rate, evaluate_sequence, load_e
 from evseg_torch.evaluation.labelled import evaluate_labelled
 from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
 from evseg_torch.pipeline import CascadedSegmenter
+from evseg_torch.threads import set_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBE = ROOT.parent / "shared" / "data" / "synthetic_probe"
@@ -150,10 +150,10 @@ def main() -> int:
         type=_seed_range,
         help="run every set once per pipeline seed, e.g. 0-2, and report the means (default: the config's)",
     )
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (default 1)")
     parser.add_argument("--json", type=Path, metavar="OUT", help="also write the results as JSON")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     start = time.perf_counter()
     try:
         results = measure(args)

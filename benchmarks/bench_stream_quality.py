@@ -15,7 +15,6 @@ import argparse
 import time
 
 import numpy as np
-import torch
 from bench_quality import add_overrides
 
 from evseg_torch.cli import _seed_range
@@ -24,6 +23,7 @@ from evseg_torch.errors import ConfigError
 from evseg_torch.evaluation.labelled import score_labelling
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic_families import make_family_scene
+from evseg_torch.threads import set_threads
 
 METRICS = ("accuracy", "iou", "detection")
 
@@ -68,7 +68,7 @@ def main() -> None:
     add_overrides(parser, "flat config override, e.g. initial_models=replace")
     parser.add_argument("--no-cold", action="store_true", help="stream only (compare variants' streams)")
     args = parser.parse_args()
-    torch.set_num_threads(1)
+    set_threads(1)
     scenes = []
     for seed in args.seeds:
         try:

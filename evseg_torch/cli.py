@@ -65,7 +65,8 @@ def _parser() -> argparse.ArgumentParser:
         "--threads",
         type=int,
         default=argparse.SUPPRESS,
-        help="torch threads per process (default 1: on shared CPUs more threads wait on each other)",
+        help="CPU threads per process, torch's and OpenCV's (default 1: on shared CPUs more threads wait "
+        "on each other)",
     )
     # Accepted before or after the command alike: the commands' parsers set them only when given there.
     parser.add_argument("--quiet", action="store_true", help="no progress bars or log lines")
@@ -456,9 +457,9 @@ def _formats() -> str:
 def _set_threads(threads: int) -> None:
     if threads < 1:
         raise EvsegError(f"--threads must be at least 1, got {threads}")
-    import torch
+    from evseg_torch.threads import set_threads
 
-    torch.set_num_threads(threads)
+    set_threads(threads)
 
 
 def _demo(args) -> int:

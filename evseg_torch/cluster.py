@@ -166,11 +166,10 @@ def _worker_version() -> str:
 
 def _segment_task(job: Job, run_id: str, index: int) -> tuple[dict | None, EvsegError | None]:
     """Run on a worker: segment one input; a bad input comes back as a value, so it is not retried."""
-    import torch
-
     from evseg_torch.output import holds_run
+    from evseg_torch.threads import set_threads
 
-    torch.set_num_threads(1)
+    set_threads(1)
     if _attempt(run_id, index) > 1 and holds_run(job.out, job.identity()):
         job = replace(job, resume=True, overwrite=False)  # an earlier attempt of this task stopped
     try:

@@ -387,10 +387,10 @@ def failure(path, err: BaseException) -> str:
 
 
 def _file_worker() -> None:
-    import torch
+    from evseg_torch.threads import set_threads
 
     worker_signals()
-    torch.set_num_threads(1)
+    set_threads(1)
 
 
 def with_window(config: SegmenterConfig, window_ms=None, stride_ms=None, events_per_window=None):

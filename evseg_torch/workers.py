@@ -3,8 +3,9 @@
 A stream's batch holds windows that do not depend on each other (each starts from the models of the
 batch before), so its windows can be shared out among processes. Each worker holds its own copy of the
 segmenter and runs :meth:`~evseg_torch.pipeline.CascadedSegmenter.segment_batch` on its share with one
-torch thread. Level two gives every window of a batch the result it gets alone (bit for bit on one
-torch thread), so the results equal those of one process on one thread, window by window.
+thread (torch's and OpenCV's: :mod:`evseg_torch.threads`). Level two gives every window of a batch the
+result it gets alone (bit for bit on one torch thread), so the results equal those of one process on one
+thread, window by window.
 
 Processes, not threads: PyMaxflow holds the GIL through every graph cut, and level one is mostly
 Python. They start the platform's default way, as torch's DataLoader workers do: forked on Linux
@@ -18,7 +19,8 @@ import multiprocessing
 from collections.abc import Sequence
 
 import numpy as np
-import torch
+
+from evseg_torch.threads import set_threads
 
 __all__ = ["WindowPool"]
 
@@ -30,7 +32,7 @@ def _start(segmenter) -> None:
     from evseg_torch.runs import worker_signals
 
     worker_signals()
-    torch.set_num_threads(1)
+    set_threads(1)
     _segmenter = segmenter
 
 

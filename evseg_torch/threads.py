@@ -1,0 +1,33 @@
+"""The CPU threads of one process: torch's intra-op pool and OpenCV's.
+
+OpenCV runs its own loops (Lucas-Kanade's points, blurs, dilations) on a pool of its own, by default as
+many threads as the machine has cores, and ``torch.set_num_threads`` does not reach it. A process meant
+to use one core (each worker of ``--workers``, a Dask task) sets both; otherwise N such processes start N
+times the machine's cores in OpenCV threads, and a "one thread" timing runs level one's tracking on two
+(``docs/speed.md``). The results do not depend on either count: OpenCV's loops are split over
+independent points and pixels, and torch's threads are set alike for a window alone and in a batch.
+"""
+
+from __future__ import annotations
+
+from evseg_torch.errors import ConfigError
+
+__all__ = ["set_threads"]
+
+
+def set_threads(threads: int) -> None:
+    """Use ``threads`` CPU threads in this process, in torch and in OpenCV.
+
+    Args:
+        threads: at least 1.
+
+    Raises:
+        ConfigError: ``threads`` is not a positive integer.
+    """
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ConfigError(f"threads must be a positive integer, got {threads!r}")
+    import cv2
+    import torch
+
+    torch.set_num_threads(threads)
+    cv2.setNumThreads(threads)
