@@ -4,10 +4,16 @@ The recording (``--minutes`` long, written chunk by chunk to an ``.npy`` file so
 little memory) repeats a handful of distinct synthetic 30 ms scenes one after another, shifted in time.
 ``evseg segment`` runs in a child process; its peak resident memory (the largest ``ru_maxrss`` of the
 child and its workers) is reported for each length, so one can check that memory does not grow with the
-recording's length.
+recording's length. Each window is another scene than the one before, so the models a stream carries
+forward never fit the next window: guided tracking falls back to cold tracking, and reuse only adds
+models to the pool. That is the worst case for a stream's carried models, not a continuous recording's
+throughput.
 
     .venv/bin/python benchmarks/bench_stream.py [--minutes 1 2] [--scenes 8] [--events-per-scene 2500]
         [--config CONFIG.yaml] [--workers 2] [--batch-size 8]
+
+With more than one worker the batch size defaults to 8: ``evseg segment`` shares out each batch's windows,
+and with a batch smaller than the workers one process would run.
 
 Real time means the wall time stays under the recording's length (the ``x real time`` column: its length
 over the wall time, above 1 when faster).
@@ -107,8 +113,15 @@ def main():
     parser.add_argument("--events-per-scene", type=int, default=2500)
     parser.add_argument("--config", type=Path, help="YAML config for evseg segment (default: its own)")
     parser.add_argument("--workers", type=int, default=1, help="evseg segment --workers")
-    parser.add_argument("--batch-size", type=int, default=1, help="evseg segment --batch-size")
+    parser.add_argument(
+        "--batch-size",
+        type=int,
+        help="evseg segment --batch-size (default 8 with more than one worker, which share out each batch's "
+        "windows, else 1)",
+    )
     args = parser.parse_args()
+    if args.batch_size is None:
+        args.batch_size = 8 if args.workers > 1 else 1
     print(f"workers {args.workers}, batch size {args.batch_size}")
     print(
         f"{'minutes':>7} {'events':>10} {'windows':>7} {'wall s':>8} {'events/s':>9} {'windows/s':>9} "
