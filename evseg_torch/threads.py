@@ -4,8 +4,9 @@ OpenCV runs its own loops (Lucas-Kanade's points, blurs, dilations) on a pool of
 many threads as the machine has cores, and ``torch.set_num_threads`` does not reach it. A process meant
 to use one core (each worker of ``--workers``, a Dask task) sets both; otherwise N such processes start N
 times the machine's cores in OpenCV threads, and a "one thread" timing runs level one's tracking on two
-(``docs/speed.md``). The results do not depend on either count: OpenCV's loops are split over
-independent points and pixels, and torch's threads are set alike for a window alone and in a batch.
+(``docs/speed.md``). OpenCV's count does not change results (its loops are split over independent
+points and pixels); torch's can (a reduction split over more threads rounds otherwise), which is one
+reason one thread is the command line's default.
 """
 
 from __future__ import annotations
