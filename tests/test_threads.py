@@ -2,6 +2,7 @@ import cv2
 import pytest
 import torch
 
+from evseg_torch.cli import main
 from evseg_torch.errors import ConfigError
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.threads import set_threads
@@ -34,3 +35,10 @@ def test_window_workers_use_one_thread_of_each(restore_threads):
     with WindowPool(CascadedSegmenter((30, 40)), 2) as pool:
         assert pool._pool.apply(cv2.getNumThreads) == 1
         assert pool._pool.apply(torch.get_num_threads) == 1
+
+
+def test_command_line_threads_set_both(restore_threads, tmp_path):
+    set_threads(1)
+    args = ["--quiet", "--threads", "2", "simulate", "--out", str(tmp_path), "--sensor-size", "30x40"]
+    assert main(args) == 0
+    assert (torch.get_num_threads(), cv2.getNumThreads()) == (2, 2)
