@@ -11,6 +11,8 @@ reason one thread is the command line's default.
 
 from __future__ import annotations
 
+from numbers import Integral
+
 from evseg_torch.errors import ConfigError
 
 __all__ = ["set_threads"]
@@ -25,10 +27,10 @@ def set_threads(threads: int) -> None:
     Raises:
         ConfigError: ``threads`` is not a positive integer.
     """
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+    if isinstance(threads, bool) or not isinstance(threads, Integral) or threads < 1:
         raise ConfigError(f"threads must be a positive integer, got {threads!r}")
     import cv2
     import torch
 
-    torch.set_num_threads(threads)
-    cv2.setNumThreads(threads)
+    torch.set_num_threads(int(threads))
+    cv2.setNumThreads(int(threads))

@@ -57,14 +57,7 @@ from evseg_torch.level_two.crops import gather_members
 from evseg_torch.level_two.window_state import Step, WindowState, subsample
 from evseg_torch.motion import MotionModel
 
-__all__ = [
-    "Discovery",
-    "bisect",
-    "candidate_regions",
-    "centroid_velocity",
-    "recentred",
-    "translation_params",
-]
+__all__ = ["Discovery", "bisect", "candidate_regions", "centroid_velocity", "recentred", "translation_params"]
 
 # A proposal only needs to show whether a region has a sharper motion of its own; an even subsample of
 # this many events per region finds it, at a fraction of the cost of fitting whole regions.
