@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -291,3 +292,15 @@ def test_a_stop_inside_an_import_is_a_stop():
     except ImportError as err:
         assert stopped_by(err).signum == signal.SIGTERM
     assert stopped_by(ValueError("not a stop")) is None
+
+
+def test_an_rpg_sequence_folder_is_segmented_under_its_name(tmp_path):
+    """``evseg segment`` on an rpg / ECD / EED folder: events.txt read, the frames' size used."""
+    folder = tmp_path / "sequence"
+    _recording(folder / "events.txt", windows=2)
+    (folder / "images").mkdir()
+    cv2.imwrite(str(folder / "images" / "frame_0.png"), np.zeros(SIZE, np.uint8))
+    (folder / "images.txt").write_text("0.0 images/frame_0.png\n")
+    assert _segment(folder, "--out", tmp_path / "out") == 0
+    summary = json.loads((tmp_path / "out" / "sequence" / "summary.json").read_text())
+    assert summary["windows"] == 2 and summary["sensor_size"] == list(SIZE)

@@ -15,6 +15,8 @@ input                  format                                               sens
                        :mod:`.prophesee_raw`
 ROS 2 bag folder       folder with ``metadata.yaml``, see :mod:`.rosbag`    message height/width
 EVIMO2v2 folder        ``dataset_events_*.npy`` ..., see :mod:`.evimo2`     mask image size
+rpg / ECD / EED folder ``events.txt`` (+ ``images.txt``), see               the first frame's size
+                       :mod:`.rpg_folder`
 =====================  ===================================================  ==============================
 
 Events come back in the canonical form of :func:`evseg_torch.events.as_events`. When the caller
@@ -39,6 +41,8 @@ from evseg_torch.io.evimo2 import WHAT as EVIMO2_WHAT
 from evseg_torch.io.evimo2 import is_sequence as is_evimo2_sequence
 from evseg_torch.io.guard import existing_file, reading
 from evseg_torch.io.numpy_files import WHAT_NPY, WHAT_NPZ
+from evseg_torch.io.rpg_folder import WHAT as RPG_WHAT
+from evseg_torch.io.rpg_folder import is_sequence as is_rpg_sequence
 
 
 class _Format(NamedTuple):
@@ -71,6 +75,7 @@ _HDF5 = _Format("HDF5 events file", "hdf5", "h5py")
 _ROSBAG = _Format("ROS bag", "rosbag", "rosbags", ("topic",))
 _PROPHESEE = _Format("Prophesee RAW/DAT file", "prophesee_raw", "expelliarmus")
 _EVIMO2 = _Format(EVIMO2_WHAT, "evimo2")
+_RPG = _Format(RPG_WHAT, "rpg_folder")
 
 _FORMATS = {
     ".txt": _Format("text events file", "text"),
@@ -90,7 +95,11 @@ _FORMATS = {
 }
 
 SUPPORTED_SUFFIXES = tuple(_FORMATS)
-SUPPORTED_FOLDERS = ("EVIMO2v2 sequence (dataset_events_t/xy/p.npy)", "ROS 2 bag (metadata.yaml)")
+SUPPORTED_FOLDERS = (
+    "EVIMO2v2 sequence (dataset_events_t/xy/p.npy)",
+    "ROS 2 bag (metadata.yaml)",
+    "rpg / ECD / EED sequence (events.txt)",
+)
 
 
 def load_events(path, *, sensor_size: tuple[int, int] | None = None, topic: str | None = None) -> np.ndarray:
@@ -262,6 +271,8 @@ def _resolve(path) -> tuple[Path, _Format]:
             return path, _EVIMO2
         if (path / "metadata.yaml").is_file():  # a ROS 2 bag
             return path, _ROSBAG
+        if is_rpg_sequence(path):
+            return path, _RPG
         raise ReaderError(
             f"{path}: a folder of no known layout; supported folders: {'; '.join(SUPPORTED_FOLDERS)}"
         )

@@ -1,7 +1,8 @@
 """The first and last timestamps of an event file, where finding them costs no pass over the events.
 
 Progress bars use it for their totals: array files (``.npy``, ``.npz``, HDF5) are read at both ends, a
-text file's last line is found from its end. Other formats give ``None``, as does any file these reads
+text file's last line is found from its end (an rpg / ECD / EED folder's ``events.txt`` too). Other
+formats give ``None``, as does any file these reads
 fail on (the reading pass itself reports what is wrong).
 """
 
@@ -14,7 +15,7 @@ import numpy as np
 
 from evseg_torch.errors import EvsegError
 from evseg_torch.events import as_events
-from evseg_torch.io import numpy_files, text
+from evseg_torch.io import numpy_files, rpg_folder, text
 
 _TAIL_BYTES = 1 << 16
 
@@ -27,6 +28,8 @@ def read_time_span(path) -> tuple[int, int] | None:
         (0, 8000000)
     """
     path = Path(path)
+    if path.is_dir() and rpg_folder.is_sequence(path):
+        path = path / rpg_folder.EVENTS
     ends = {".npy": _npy, ".npz": _npz, ".h5": _hdf5, ".hdf5": _hdf5, ".txt": _text}.get(path.suffix.lower())
     if ends is None:
         return None
