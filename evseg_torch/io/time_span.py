@@ -1,8 +1,8 @@
 """The first and last timestamps of an event file, where finding them costs no pass over the events.
 
 Progress bars use it for their totals: array files (``.npy``, ``.npz``, HDF5) are read at both ends, a
-text file's last line is found from its end (an rpg / ECD / EED folder's ``events.txt`` too). Other
-formats give ``None``, as does any file these reads
+text file's last line is found from its end (an rpg / ECD / EED folder's ``events.txt`` too), an EVIMO2v2
+folder's time file is read at both ends. Other formats give ``None``, as does any file these reads
 fail on (the reading pass itself reports what is wrong).
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 
 from evseg_torch.errors import EvsegError
 from evseg_torch.events import as_events
-from evseg_torch.io import numpy_files, rpg_folder, text
+from evseg_torch.io import evimo2, numpy_files, rpg_folder, text
 
 _TAIL_BYTES = 1 << 16
 
@@ -28,9 +28,15 @@ def read_time_span(path) -> tuple[int, int] | None:
         (0, 8000000)
     """
     path = Path(path)
-    if path.is_dir() and rpg_folder.is_sequence(path):
-        path = path / rpg_folder.EVENTS
-    ends = {".npy": _npy, ".npz": _npz, ".h5": _hdf5, ".hdf5": _hdf5, ".txt": _text}.get(path.suffix.lower())
+    if path.is_dir():  # the folder layouts of io.dispatch, in its order
+        if evimo2.is_sequence(path):
+            ends = _evimo2
+        elif rpg_folder.is_sequence(path):
+            path, ends = path / rpg_folder.EVENTS, _text
+        else:
+            return None
+    else:
+        ends = _ENDS.get(path.suffix.lower())
     if ends is None:
         return None
     try:
@@ -41,6 +47,12 @@ def read_time_span(path) -> tuple[int, int] | None:
     except (EvsegError, OSError, ValueError, KeyError, IndexError):
         return None
     return int(t[0]), int(t[-1])
+
+
+def _evimo2(folder: Path) -> np.ndarray:
+    t, xy, p = evimo2._event_columns(folder)
+    ends = np.array([0, -1])
+    return evimo2._rows(t[ends], xy[ends], p[ends], flip=False)
 
 
 def _npy(path: Path) -> np.ndarray:
@@ -73,3 +85,6 @@ def _text(path: Path) -> np.ndarray | None:
     if first is None or last is None or not len(last):
         return None
     return np.stack([first[0], last[-1]])
+
+
+_ENDS = {".npy": _npy, ".npz": _npz, ".h5": _hdf5, ".hdf5": _hdf5, ".txt": _text}

@@ -15,6 +15,7 @@ from evseg_torch.io import (
     read_sensor_size,
     reader_for,
 )
+from evseg_torch.io.time_span import read_time_span
 from tests.io._writers import HEIGHT, WIDTH, make_events
 
 FRAME_IDS = [3, 4, 5]
@@ -61,6 +62,7 @@ def test_events_of_the_folder(tmp_path, events, masks):
     chunks = list(iter_event_chunks(folder, chunk_size=300))
     assert [len(c) for c in chunks] == [300, 300, 200]
     np.testing.assert_array_equal(np.concatenate(chunks), events)
+    assert read_time_span(folder) == (int(events["t"][0]), int(events["t"][-1]))  # progress bars' total
 
 
 def test_samsung_mono_polarity_is_flipped(tmp_path, events, masks):
