@@ -4,13 +4,14 @@ The recording (``--minutes`` long, written chunk by chunk to an ``.npy`` file so
 little memory) repeats a handful of distinct synthetic 30 ms scenes one after another, shifted in time.
 ``evseg segment`` runs in a child process; its peak resident memory (the largest ``ru_maxrss`` of the
 child and its workers) is reported for each length, so one can check that memory does not grow with the
-recording's length. Each window is another scene than the one before, so the models a stream carries
-forward never fit the next window: guided tracking falls back to cold tracking, and reuse only adds
-models to the pool. That is the worst case for a stream's carried models, not a continuous recording's
-throughput.
+recording's length. By default each scene lasts one 30 ms window, so every window is another scene than
+the one before and the models a stream carries forward never fit the next window: guided tracking falls
+back to cold tracking, and reuse only adds models to the pool. That is the worst case for a stream's
+carried models. ``--scene-ms 600`` makes each scene last 20 windows, continuous within, as a recording
+is between its cuts: the throughput of a stream whose carried models fit.
 
     .venv/bin/python benchmarks/bench_stream.py [--minutes 1 2] [--scenes 8] [--events-per-scene 2500]
-        [--config CONFIG.yaml] [--workers 2] [--batch-size 8]
+        [--scene-ms 30] [--config CONFIG.yaml] [--workers 2] [--batch-size 8]
 
 With more than one worker the batch size defaults to 8: ``evseg segment`` shares out each batch's windows,
 and with a batch smaller than the workers one process would run.
@@ -62,13 +63,13 @@ def write_recording(
         make_scene(SENSOR, duration, 1 + s % 3, n_events=events_per_scene, rng=s, **scene_options).events
         for s in range(n_scenes)
     ]
-    n_windows = round(minutes * 60e6 / scene_us)
-    total = sum(len(scenes[w % n_scenes]) for w in range(n_windows))
+    n_slots = round(minutes * 60e6 / scene_us)
+    total = sum(len(scenes[slot % n_scenes]) for slot in range(n_slots))
     out = np.lib.format.open_memmap(path, mode="w+", dtype=EVENT_DTYPE, shape=(total,))
     position = 0
-    for window in range(n_windows):
-        chunk = scenes[window % n_scenes].copy()
-        chunk["t"] = chunk["t"] - chunk["t"][0] + window * scene_us
+    for slot in range(n_slots):
+        chunk = scenes[slot % n_scenes].copy()
+        chunk["t"] = chunk["t"] - chunk["t"][0] + slot * scene_us
         out[position : position + len(chunk)] = chunk
         position += len(chunk)
     out.flush()
@@ -110,7 +111,12 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, nargs="+", default=[1.0, 2.0])
     parser.add_argument("--scenes", type=int, default=8)
-    parser.add_argument("--events-per-scene", type=int, default=2500)
+    parser.add_argument(
+        "--events-per-scene", type=int, default=2500, help="signal events per 30 ms of a scene (default 2500)"
+    )
+    parser.add_argument(
+        "--scene-ms", type=float, default=30.0, help="length of each scene (default 30: one window)"
+    )
     parser.add_argument("--config", type=Path, help="YAML config for evseg segment (default: its own)")
     parser.add_argument("--workers", type=int, default=1, help="evseg segment --workers")
     parser.add_argument(
@@ -122,7 +128,11 @@ def main():
     args = parser.parse_args()
     if args.batch_size is None:
         args.batch_size = 8 if args.workers > 1 else 1
-    print(f"workers {args.workers}, batch size {args.batch_size}")
+    if not args.scene_ms >= 30.0:
+        parser.error(f"--scene-ms must be at least one 30 ms window, got {args.scene_ms:g}")
+    scene_us = round(args.scene_ms * 1e3)
+    events_per_scene = round(args.events_per_scene * scene_us / SCENE_US)
+    print(f"workers {args.workers}, batch size {args.batch_size}, scenes of {args.scene_ms:g} ms")
     print(
         f"{'minutes':>7} {'events':>10} {'windows':>7} {'wall s':>8} {'events/s':>9} {'windows/s':>9} "
         f"{'x real time':>11} {'peak RSS MiB':>12}"
@@ -130,7 +140,7 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         for minutes in args.minutes:
             path = Path(tmp) / f"stream_{minutes:g}min.npy"
-            n_events = write_recording(path, minutes, args.scenes, args.events_per_scene)
+            n_events = write_recording(path, minutes, args.scenes, events_per_scene, scene_us)
             result = run(path, Path(tmp) / "out", args.config, args.workers, args.batch_size)
             wall, windows = result["wall_s"], result["windows"]
             print(
