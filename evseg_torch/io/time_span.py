@@ -31,6 +31,8 @@ def read_time_span(path) -> tuple[int, int] | None:
     if path.is_dir():  # the folder layouts of io.dispatch, in its order
         if evimo2.is_sequence(path):
             ends = _evimo2
+        elif (path / "metadata.yaml").is_file():  # a ROS 2 bag
+            return None
         elif rpg_folder.is_sequence(path):
             path, ends = path / rpg_folder.EVENTS, _text
         else:
