@@ -260,7 +260,7 @@ def segment_file(job: Job, progress: bool = False) -> dict:
 
 def _window_total(job: Job) -> int | None:
     """How many windows the run cuts, where that is known without a pass over the events."""
-    from evseg_torch.io.time_span import read_time_span
+    from evseg_torch.io import read_time_span
 
     window = job.config.window
     total = None

@@ -1,7 +1,8 @@
 """Event files and ground truth: one reader per format, chosen by the file's suffix or the folder's contents.
 
 :func:`load_events` reads a whole file, :func:`iter_event_chunks` streams it, :func:`read_sensor_size`
-reads the ``(H, W)`` a file stores, :func:`reader_for` names the reader of a path. Every reader returns
+reads the ``(H, W)`` a file stores, :func:`read_time_span` its first and last timestamps where that is
+cheap, :func:`reader_for` names the reader of a path. Every reader returns
 canonical events (see :mod:`evseg_torch.events`) and raises :class:`~evseg_torch.errors.ReaderError`
 with a one-line message naming the file for a missing, unknown, corrupt or truncated file.
 """
@@ -11,6 +12,7 @@ from evseg_torch.io.dispatch import (
     iter_event_chunks,
     load_events,
     read_sensor_size,
+    read_time_span,
     reader_for,
     resolve_sensor_size,
     scan_sensor_size,
@@ -29,6 +31,7 @@ __all__ = [
     "load_evimo2",
     "load_frame_list",
     "read_sensor_size",
+    "read_time_span",
     "reader_for",
     "resolve_sensor_size",
     "save_evimo",

@@ -22,7 +22,8 @@ rpg / ECD / EED folder ``events.txt`` (+ ``images.txt``), see               the 
 Events come back in the canonical form of :func:`evseg_torch.events.as_events`. When the caller
 gives no ``sensor_size``, events are checked against the size the file stores, so that
 ``load_events(path)`` always fits in :func:`read_sensor_size`'s ``(H, W)``. :func:`reader_for` names
-the reader of a path without reading any events. Reader options (``topic``, for ROS bags) reach only
+the reader of a path without reading any events, :func:`read_time_span` the first and last timestamps
+where they cost no pass over the events. Reader options (``topic``, for ROS bags) reach only
 the formats that take them; giving one to another format is a :class:`ConfigError`.
 """
 
@@ -35,7 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
+from evseg_torch.errors import ConfigError, EventFormatError, EvsegError, ReaderError
 from evseg_torch.events import as_events, check_sensor_size, infer_sensor_size
 from evseg_torch.io.evimo2 import WHAT as EVIMO2_WHAT
 from evseg_torch.io.evimo2 import is_sequence as is_evimo2_sequence
@@ -56,9 +57,10 @@ class _Format(NamedTuple):
     read: str = "read"
     chunks: str = "chunks"
     sensor_size: str = "sensor_size"
+    ends: str | None = None  # the first and last events without a pass over the rest, where the format allows
 
     def function(self, name: str) -> Callable:
-        """The reader's function ``name`` (``"read"``, ``"chunks"`` or ``"sensor_size"``)."""
+        """The reader's function ``name`` (``"read"``, ``"chunks"``, ``"sensor_size"`` or ``"ends"``)."""
         try:
             module = importlib.import_module(f"evseg_torch.io.{self.module}")
         except ModuleNotFoundError as err:
@@ -71,19 +73,29 @@ class _Format(NamedTuple):
         return getattr(module, getattr(self, name))
 
 
-_HDF5 = _Format("HDF5 events file", "hdf5", "h5py")
+_HDF5 = _Format("HDF5 events file", "hdf5", "h5py", ends="ends")
 _ROSBAG = _Format("ROS bag", "rosbag", "rosbags", ("topic",))
 _PROPHESEE = _Format("Prophesee RAW/DAT file", "prophesee_raw", "expelliarmus")
-_EVIMO2 = _Format(EVIMO2_WHAT, "evimo2")
-_RPG = _Format(RPG_WHAT, "rpg_folder")
+_EVIMO2 = _Format(EVIMO2_WHAT, "evimo2", ends="ends")
+_RPG = _Format(RPG_WHAT, "rpg_folder", ends="ends")
 
 _FORMATS = {
-    ".txt": _Format("text events file", "text"),
+    ".txt": _Format("text events file", "text", ends="ends"),
     ".npy": _Format(
-        WHAT_NPY, "numpy_files", read="read_npy", chunks="chunks_npy", sensor_size="sensor_size_npy"
+        WHAT_NPY,
+        "numpy_files",
+        read="read_npy",
+        chunks="chunks_npy",
+        sensor_size="sensor_size_npy",
+        ends="ends_npy",
     ),
     ".npz": _Format(
-        WHAT_NPZ, "numpy_files", read="read_npz", chunks="chunks_npz", sensor_size="sensor_size_npz"
+        WHAT_NPZ,
+        "numpy_files",
+        read="read_npz",
+        chunks="chunks_npz",
+        sensor_size="sensor_size_npz",
+        ends="ends_npz",
     ),
     ".h5": _HDF5,
     ".hdf5": _HDF5,
@@ -230,6 +242,30 @@ def resolve_sensor_size(
             "leave the size out to use the stored one"
         )
     return stored or given
+
+
+def read_time_span(path) -> tuple[int, int] | None:
+    """``(first, last)`` timestamps in µs of the events of ``path``, where finding them costs no pass.
+
+    For progress bars' totals: array files (``.npy``, ``.npz``, HDF5, an EVIMO2v2 folder's) are read at
+    both ends, a text file's last line is found from its end. Other formats give ``None``, as does any
+    file these reads fail on: the reading pass itself reports what is wrong.
+
+    Examples:
+        >>> read_time_span("events.npy")  # doctest: +SKIP
+        (0, 8000000)
+    """
+    try:
+        path, fmt = _resolve(path)
+        if fmt.ends is None:
+            return None
+        rows = fmt.function("ends")(path)
+        if rows is None or len(rows) < 2:
+            return None
+        t = as_events(rows)["t"]
+    except (EvsegError, OSError, ValueError, KeyError, IndexError):
+        return None
+    return int(t[0]), int(t[-1])
 
 
 def scan_sensor_size(path, chunk_size: int = 1_000_000, *, topic: str | None = None) -> tuple[int, int]:

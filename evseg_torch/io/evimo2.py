@@ -73,6 +73,13 @@ def chunks(folder: Path, chunk_size: int, flip_polarity: bool | None = None) -> 
         yield _rows(t, xy, p, flip)
 
 
+def ends(folder: Path, flip_polarity: bool | None = None) -> np.ndarray:
+    """The first and the last event, read from the memory-mapped files."""
+    t, xy, p = _event_columns(folder)
+    rows = np.array([0, -1])
+    return _rows(t[rows], xy[rows], p[rows], _flip(folder, flip_polarity))
+
+
 def sensor_size(folder: Path) -> tuple[int, int] | None:
     """``(H, W)`` of the first mask, read from its header; ``None`` without a mask file or masks."""
     if not (folder / MASK_FILE).is_file():

@@ -49,6 +49,13 @@ def chunks(path: Path, chunk_size: int) -> Iterator[np.ndarray]:
             yield _rows(file, names, begin, min(begin + chunk_size, count))
 
 
+def ends(path: Path) -> np.ndarray:
+    """The first and the last event."""
+    with h5py.File(path, "r") as file:
+        names, count = _layout(file)
+        return np.concatenate([_rows(file, names, 0, 1), _rows(file, names, count - 1, count)])
+
+
 def sensor_size(path: Path) -> tuple[int, int] | None:
     """``(H, W)`` from the root attribute ``sensor_resolution``, else ``None``."""
     with h5py.File(path, "r") as file:

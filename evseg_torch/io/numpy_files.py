@@ -49,6 +49,11 @@ def read_npy(path: Path) -> np.ndarray:
     return _open_npy(path)
 
 
+def ends_npy(path: Path) -> np.ndarray:
+    """The first and the last event, read from the memory map."""
+    return np.array(_open_npy(path)[[0, -1]])
+
+
 def chunks_npy(path: Path, chunk_size: int) -> Iterator[np.ndarray]:
     """Consecutive slices of at most ``chunk_size`` events, each read from the file on its own."""
     return npy_row_blocks(path, _open_npy(path), chunk_size)
@@ -94,6 +99,13 @@ def read_npz(path: Path) -> np.ndarray:
     with open_npz(path) as npz:
         columns = _columns(npz)
     return _assemble(columns, slice(None))
+
+
+def ends_npz(path: Path) -> np.ndarray:
+    """The first and the last event (members cannot be memory-mapped: the columns are loaded)."""
+    with open_npz(path) as npz:
+        columns = _columns(npz)
+    return _assemble(columns, np.array([0, -1]))
 
 
 def chunks_npz(path: Path, chunk_size: int) -> Iterator[np.ndarray]:

@@ -39,6 +39,11 @@ def chunks(folder: Path, chunk_size: int) -> Iterator[np.ndarray]:
     return text.chunks(folder / EVENTS, chunk_size)
 
 
+def ends(folder: Path) -> np.ndarray | None:
+    """The first and the last event of ``events.txt`` (see :func:`.text.ends`)."""
+    return text.ends(folder / EVENTS)
+
+
 def sensor_size(folder: Path) -> tuple[int, int] | None:
     """The first listed frame's ``(H, W)``, or ``None`` without ``images.txt``."""
     if not (folder / FRAMES).is_file():

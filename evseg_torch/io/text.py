@@ -11,6 +11,7 @@ one half.
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Iterator
 from itertools import islice
@@ -21,6 +22,8 @@ import numpy as np
 from evseg_torch.errors import ReaderError
 
 _COLUMNS = 4
+# The last event is parsed from this many bytes at the file's end.
+_TAIL_BYTES = 1 << 16
 
 
 def read(path: Path) -> np.ndarray:
@@ -38,6 +41,18 @@ def chunks(path: Path, chunk_size: int) -> Iterator[np.ndarray]:
             first_line += len(lines)
             if len(block):
                 yield block
+
+
+def ends(path: Path) -> np.ndarray | None:
+    """The first and the last event, the last parsed from the file's end; ``None`` if either is missing."""
+    first = next(chunks(path, 1000), None)
+    with open(path, "rb") as file:
+        file.seek(max(file.seek(0, os.SEEK_END) - _TAIL_BYTES, 0))
+        tail = file.read().splitlines()[1:]  # the first may be cut
+    last = _parse(tail, first_line=1) if tail else None
+    if first is None or last is None or not len(last):
+        return None
+    return np.stack([first[0], last[-1]])
 
 
 def sensor_size(path: Path) -> None:

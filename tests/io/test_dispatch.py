@@ -6,7 +6,13 @@ import pytest
 
 from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
 from evseg_torch.events import EVENT_DTYPE
-from evseg_torch.io import SUPPORTED_SUFFIXES, iter_event_chunks, load_events, read_sensor_size
+from evseg_torch.io import (
+    SUPPORTED_SUFFIXES,
+    iter_event_chunks,
+    load_events,
+    read_sensor_size,
+    read_time_span,
+)
 from tests.io._writers import HEIGHT, WIDTH, make_events, write_npz_columns, write_txt
 
 
@@ -28,9 +34,22 @@ class TestRoundTrip:
         events["x"] = 0
         np.testing.assert_array_equal(load_events(path), source)
 
+    def test_read_time_span(self, written):
+        path, source, _ = written
+        assert read_time_span(path) == (int(source["t"][0]), int(source["t"][-1]))
+
     def test_str_path(self, written):
         path, source, _ = written
         np.testing.assert_array_equal(load_events(str(path)), source)
+
+
+def test_time_span_is_none_where_not_cheap_or_unreadable(tmp_path):
+    """Progress bars then go without a total: formats read only by a pass, missing or broken files."""
+    (tmp_path / "events.aedat").write_bytes(b"#!AER-DAT2.0\r\n")
+    (tmp_path / "broken.npy").write_bytes(b"not an array")
+    (tmp_path / "comments.txt").write_text("# nothing but a comment\n")
+    for name in ("events.aedat", "broken.npy", "comments.txt", "missing.npy", "events.unknown"):
+        assert read_time_span(tmp_path / name) is None
 
 
 class TestChunks:

@@ -13,9 +13,9 @@ from evseg_torch.io import (
     load_events,
     load_evimo2,
     read_sensor_size,
+    read_time_span,
     reader_for,
 )
-from evseg_torch.io.time_span import read_time_span
 from tests.io._writers import HEIGHT, WIDTH, make_events
 
 FRAME_IDS = [3, 4, 5]

@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from evseg_torch.errors import EventFormatError, ReaderError
-from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size, reader_for
-from evseg_torch.io.time_span import read_time_span
+from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size, read_time_span, reader_for
 from tests.io._writers import HEIGHT, WIDTH, make_events, write_txt
 
 
