@@ -85,7 +85,7 @@ def _parser() -> argparse.ArgumentParser:
         "written into OUT/<name>/.partial/ with a checkpoint after every batch of windows and appear only "
         "when complete; a stopped run (Ctrl-C, SIGTERM, a crash) continues with --resume.",
     )
-    segment.add_argument("inputs", nargs="+", metavar="INPUT", help=f"event files ({_formats()})")
+    segment.add_argument("inputs", nargs="+", metavar="INPUT", help=_inputs_help())
     segment.add_argument("--out", required=True, type=Path, help="output folder")
     segment.add_argument(
         "--config",
@@ -448,10 +448,11 @@ def _device(name: str) -> str:
     return name
 
 
-def _formats() -> str:
-    from evseg_torch.io import SUPPORTED_SUFFIXES
+def _inputs_help() -> str:
+    from evseg_torch.io.dispatch import SUPPORTED_FOLDERS, SUPPORTED_SUFFIXES
 
-    return " ".join(SUPPORTED_SUFFIXES)
+    folders = "; ".join(SUPPORTED_FOLDERS)
+    return f"event files ({' '.join(SUPPORTED_SUFFIXES)}) or sequence folders ({folders})"
 
 
 def _set_threads(threads: int) -> None:
