@@ -35,6 +35,8 @@ from evseg_torch.synthetic import make_scene
 
 SENSOR = (180, 240)
 SCENE_US = 30_000
+# The stages of summary.json's timings_ms that the table shows.
+STAGES = ("features", "level_one", "level_two")
 
 
 def write_recording(
@@ -135,7 +137,7 @@ def main():
     print(f"workers {args.workers}, batch size {args.batch_size}, scenes of {args.scene_ms:g} ms")
     print(
         f"{'minutes':>7} {'events':>10} {'windows':>7} {'wall s':>8} {'events/s':>9} {'windows/s':>9} "
-        f"{'x real time':>11} {'peak RSS MiB':>12}"
+        f"{'x real time':>11} {'peak RSS MiB':>12}  median ms per window: features / level one / level two"
     )
     with tempfile.TemporaryDirectory() as tmp:
         for minutes in args.minutes:
@@ -145,7 +147,8 @@ def main():
             wall, windows = result["wall_s"], result["windows"]
             print(
                 f"{minutes:>7g} {n_events:>10} {windows:>7} {wall:>8.1f} {n_events / wall:>9.0f} "
-                f"{windows / wall:>9.1f} {minutes * 60 / wall:>11.2f} {result['peak_rss_mib']:>12.0f}"
+                f"{windows / wall:>9.1f} {minutes * 60 / wall:>11.2f} {result['peak_rss_mib']:>12.0f}  "
+                + " / ".join(f"{result['timings_ms'][stage]['median']:.1f}" for stage in STAGES)
             )
             path.unlink()
 
