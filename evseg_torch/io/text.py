@@ -47,8 +47,10 @@ def ends(path: Path) -> np.ndarray | None:
     """The first and the last event, the last parsed from the file's end; ``None`` if either is missing."""
     first = next(chunks(path, 1000), None)
     with open(path, "rb") as file:
-        file.seek(max(file.seek(0, os.SEEK_END) - _TAIL_BYTES, 0))
-        tail = file.read().splitlines()[1:]  # the first may be cut
+        start = file.seek(max(file.seek(0, os.SEEK_END) - _TAIL_BYTES, 0))
+        tail = file.read().splitlines()
+    if start > 0:
+        tail = tail[1:]  # the first line read may be cut
     last = _parse(tail, first_line=1) if tail else None
     if first is None or last is None or not len(last):
         return None

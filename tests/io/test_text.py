@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from evseg_torch.errors import ReaderError
-from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size
+from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size, read_time_span
 
 
 def _write(tmp_path, text):
@@ -25,6 +25,11 @@ class TestTextReader:
         events = load_events(path)
         assert events["t"].tolist() == [1, 2]
         assert events["p"].tolist() == [1, -1]
+
+    def test_time_span_of_a_short_file_keeps_its_first_line(self, tmp_path):
+        # A file shorter than the tail read at its end: its first line is whole and may be the last event.
+        assert read_time_span(_write(tmp_path, "0.000005 1 2 1\n0.000009 3 4 0\n")) == (5, 9)
+        assert read_time_span(_write(tmp_path, "0.000005 1 2 1\n")) == (5, 5)
 
     def test_no_sensor_size(self, tmp_path):
         assert read_sensor_size(_write(tmp_path, "0 1 2 1\n")) is None
