@@ -248,8 +248,9 @@ def read_time_span(path) -> tuple[int, int] | None:
     """``(first, last)`` timestamps in µs of the events of ``path``, where finding them costs no pass.
 
     For progress bars' totals: array files (``.npy``, ``.npz``, HDF5, an EVIMO2v2 folder's) are read at
-    both ends, a text file's last line is found from its end. Other formats give ``None``, as does any
-    file these reads fail on: the reading pass itself reports what is wrong.
+    both ends, a text file's last line (an rpg / ECD / EED folder's ``events.txt`` too) is found from its
+    end. Other formats give ``None``, as does any file these reads fail on: the reading pass itself
+    reports what is wrong.
 
     Examples:
         >>> read_time_span("events.npy")  # doctest: +SKIP
