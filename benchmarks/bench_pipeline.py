@@ -7,7 +7,10 @@ absent). Prints the median milliseconds of features, level one, level two and th
 the torch thread count.
 
     OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_pipeline.py [--windows 10 --threads 1]
-        [--events 40000]
+        [--events 40000] [--set n_iter_segmentation=2]
+
+``--set`` changes the default config (flat keys, repeatable), e.g. to time a variant beside the default
+in another process at the same time.
 """
 
 import argparse
@@ -16,8 +19,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from bench_quality import add_overrides  # the benchmarks' one KEY=VALUE option (run as a script)
 
 from evseg_torch import CascadedSegmenter
+from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.evaluation.eed import load_eed_sequence
 from evseg_torch.synthetic import make_scene
 from evseg_torch.threads import set_threads
@@ -45,16 +50,19 @@ def main():
     parser.add_argument("--windows", type=int, default=10)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--events", type=int, help="signal events per 30 ms window (default: generator's)")
+    add_overrides(parser, "flat override of the default config, e.g. n_iter_segmentation=2")
     args = parser.parse_args()
     set_threads(args.threads)
-    print(f"{cpu_name()}, threads {torch.get_num_threads()} (torch and OpenCV)")
+    config = replace_config(SegmenterConfig(), **dict(args.set))
+    overrides = dict(args.set) or "none"
+    print(f"{cpu_name()}, threads {torch.get_num_threads()} (torch and OpenCV), overrides {overrides}")
     header = ("features", "level one", "level two", "total")
     print(f"{'windows':<28} {'n':>4} {'events':>7} " + " ".join(f"{h:>9}" for h in header))
     cold, reuse, sizes_cold, sizes_reuse = [], [], [], []
     for seed in range(args.windows):
         size = {} if args.events is None else {"n_events": 2 * args.events}
         scene = make_scene((180, 240), 0.06, 1 + seed % 3, rng=seed, **size)
-        segmenter = CascadedSegmenter(scene.sensor_size)
+        segmenter = CascadedSegmenter(scene.sensor_size, config)
         first, second = list(segmenter.stream(scene.events, window_ms=30))[:2]
         cold.append(first.timings_ms)
         sizes_cold.append(len(first.labels))
@@ -64,7 +72,7 @@ def main():
     print(row("synthetic, with model reuse", reuse, sizes_reuse))
     if EED.is_dir():
         sequence = load_eed_sequence(EED)
-        results = list(CascadedSegmenter(sequence.sensor_size).stream(sequence.events, window_ms=30))
+        results = list(CascadedSegmenter(sequence.sensor_size, config).stream(sequence.events, window_ms=30))
         print(
             row("eed_occlusions, streamed", [r.timings_ms for r in results], [len(r.labels) for r in results])
         )
