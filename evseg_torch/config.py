@@ -388,7 +388,8 @@ class SegmenterConfig(_Section):
 
 
 def bundled_config(name: str) -> Path:
-    """The path of a config shipped with the package: ``default``, ``eed`` or ``evimo`` (``.yaml`` optional).
+    """The path of a config shipped with the package: ``default``, ``eed``, ``evimo`` or ``fast`` (``.yaml``
+    optional).
 
     Raises:
         ConfigError: no such config is shipped.

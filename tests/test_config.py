@@ -84,7 +84,7 @@ def test_missing_file():
     assert config_from_dict({}) == SegmenterConfig()
 
 
-@pytest.mark.parametrize("name", ["default", "eed", "evimo"])
+@pytest.mark.parametrize("name", ["default", "eed", "evimo", "fast"])
 def test_shipped_configs_load_strictly(name):
     config = load_config(bundled_config(name))
     assert isinstance(config, SegmenterConfig)
@@ -96,8 +96,8 @@ def test_default_yaml_equals_dataclass_defaults():
         bundled_config("eds")
 
 
-@pytest.mark.parametrize("name", ["eed", "evimo"])
-def test_dataset_configs_list_only_their_overrides(name):
+@pytest.mark.parametrize("name", ["eed", "evimo", "fast"])
+def test_variant_configs_list_only_their_overrides(name):
     data = yaml.safe_load(bundled_config(name).read_text())
     defaults = config_to_dict(SegmenterConfig())
     for section, values in data.items():

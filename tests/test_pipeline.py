@@ -5,10 +5,11 @@ import pytest
 import torch
 
 from evseg_torch import CascadedSegmenter, EventFormatError, Segmentation
-from evseg_torch.config import SegmenterConfig
+from evseg_torch.config import SegmenterConfig, bundled_config
 from evseg_torch.errors import ConfigError, ModelError
 from evseg_torch.events import EventBatch, batch_windows, to_array, to_torch
 from evseg_torch.level_one.progressive_x import progressive_x
+from evseg_torch.level_two.discovery import Discovery
 from evseg_torch.metrics import labelling_accuracy
 from evseg_torch.motion import make_motion_model
 from evseg_torch.synthetic import make_scene
@@ -91,6 +92,16 @@ def test_config_and_overrides(tmp_path):
     assert CascadedSegmenter(sensor_size=SIZE, lambda_smooth=40).config.level_two.lambda_smooth == 40
     with pytest.raises(ConfigError, match="lambda_smoth"):
         CascadedSegmenter(sensor_size=SIZE, lambda_smoth=40)
+
+
+def test_fast_config_segments_without_discovery(scene, result, monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("fast.yaml proposed models")
+
+    monkeypatch.setattr(Discovery, "propose", refuse)
+    fast = CascadedSegmenter.from_config(bundled_config("fast"), sensor_size=SIZE)(scene.events)
+    truth = scene.labels
+    assert labelling_accuracy(fast.labels, truth) > labelling_accuracy(result.labels, truth) - 0.1
 
 
 def test_stream_reuses_models_and_places_windows():
