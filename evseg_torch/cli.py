@@ -17,6 +17,8 @@ from evseg_torch.errors import EvsegError
 
 log = logging.getLogger("evseg")
 
+_CONFIG_HELP = "YAML config, or a bundled config's name: default, eed, evimo, fast"
+
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``evseg``; returns the exit status.
@@ -89,8 +91,8 @@ def _parser() -> argparse.ArgumentParser:
     segment.add_argument("--out", required=True, type=Path, help="output folder")
     segment.add_argument(
         "--config",
-        type=Path,
-        help="YAML config (default: the built-in defaults, listed in configs/default.yaml)",
+        type=_config_file,
+        help=f"{_CONFIG_HELP} (default: the built-in defaults, listed in configs/default.yaml)",
     )
     segment.add_argument(
         "--sensor-size",
@@ -212,7 +214,7 @@ def _parser() -> argparse.ArgumentParser:
         "scaling objects, small fast objects in sparse windows, weak textures), scored as the probe scenes",
     )
     synthetic.add_argument("--seeds", type=_seed_range, help="seeds (default 0-19, and 0-59 for a family)")
-    synthetic.add_argument("--config", type=Path, help="YAML config")
+    synthetic.add_argument("--config", type=_config_file, help=_CONFIG_HELP)
     synthetic.add_argument(
         "--pipeline-seeds",
         type=_seed_range,
@@ -231,7 +233,7 @@ def _parser() -> argparse.ArgumentParser:
         "and count the object as detected when the best non-background cluster's box has IoU > 0.5.",
     )
     eed.add_argument("folders", nargs="+", type=Path, metavar="FOLDER", help="EED sequence folders")
-    eed.add_argument("--config", type=Path, default=None, help="YAML config (default: the bundled eed.yaml)")
+    eed.add_argument("--config", type=_config_file, help=f"{_CONFIG_HELP} (default: eed)")
     eed.add_argument(
         "--window-ms", type=float, help="window length centred on each box (default from the config)"
     )
@@ -266,7 +268,7 @@ def _parser() -> argparse.ArgumentParser:
     evimo.add_argument(
         "--trusted", action="store_true", help="allow unpickling the file's meta (mask timestamps)"
     )
-    evimo.add_argument("--config", type=Path, help="YAML config")
+    evimo.add_argument("--config", type=_config_file, help=_CONFIG_HELP)
     evimo.add_argument("--window-ms", type=float, help="window length (default from the config)")
     evimo.add_argument("--json", type=Path, help="also write the results as JSON")
     _add_device(evimo)
@@ -307,7 +309,7 @@ def _parser() -> argparse.ArgumentParser:
         help="per-event mask of events to leave out (default: ambiguous); a file without the field ignores "
         "none, so e.g. `--ignore-field none` scores every event but noise",
     )
-    labelled.add_argument("--config", type=Path, help="YAML config (not with --predictions)")
+    labelled.add_argument("--config", type=_config_file, help=f"{_CONFIG_HELP} (not with --predictions)")
     labelled.add_argument(
         "--sensor-size", type=_sensor_size, help="HxW (default: the file's sensor_size, height and width)"
     )
@@ -780,6 +782,21 @@ def _json_default(value):
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f"cannot write {type(value).__name__} as JSON")
+
+
+def _config_file(text: str) -> Path:
+    """A ``--config`` value: a YAML file, or where no file has that name, a bundled config
+    (:func:`~evseg_torch.config.bundled_config`), so that ``--config fast`` works wherever the package is
+    installed. A name that is neither stays a path, which ``load_config`` reports as missing."""
+    path = Path(text)
+    if path.exists():
+        return path
+    from evseg_torch.config import bundled_config
+
+    try:
+        return bundled_config(text)
+    except EvsegError:
+        return path
 
 
 def _sensor_size(text: str) -> tuple[int, int]:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from evseg_torch.cli import main
 from evseg_torch.evaluation.labelled import load_labelled, score_labelling
@@ -104,6 +105,23 @@ def test_segment_writes_results_in_input_order(tmp_path):
     assert set(summary["timings_ms"]) == {"features", "level_one", "level_two", "total"}
     assert (folder / "config.yaml").is_file()
     assert len(list((folder / "images").glob("*.png"))) == len(windows)
+
+
+def test_config_by_bundled_name_or_file(tmp_path, monkeypatch, capsys):
+    path = _scene_file(tmp_path)
+    args = ["--quiet", "segment", str(path), "--window-ms", "20", "--max-windows", "1"]
+    monkeypatch.chdir(tmp_path)
+    assert main([*args, "--out", "named", "--config", "fast"]) == 0
+    written = yaml.safe_load((tmp_path / "named" / path.stem / "config.yaml").read_text())
+    assert written["level_two"]["discovery_rounds"] == 0
+    # A file of that name is the config, not the bundled one.
+    (tmp_path / "fast").write_text("level_two:\n  lambda_smooth: 12\n")
+    assert main([*args, "--out", "file", "--config", "fast"]) == 0
+    written = yaml.safe_load((tmp_path / "file" / path.stem / "config.yaml").read_text())
+    assert written["level_two"]["lambda_smooth"] == 12 and written["level_two"]["discovery_rounds"] == 2
+    capsys.readouterr()
+    assert main([*args, "--out", "none", "--config", "fastest"]) == 2
+    assert "fastest" in capsys.readouterr().err
 
 
 def test_segment_in_batches_writes_the_same_windows(tmp_path, capsys):
