@@ -17,8 +17,6 @@ from evseg_torch.errors import EvsegError
 
 log = logging.getLogger("evseg")
 
-_CONFIG_HELP = "YAML config, or a bundled config's name: default, eed, evimo, fast"
-
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``evseg``; returns the exit status.
@@ -92,7 +90,7 @@ def _parser() -> argparse.ArgumentParser:
     segment.add_argument(
         "--config",
         type=_config_file,
-        help=f"{_CONFIG_HELP} (default: the built-in defaults, listed in configs/default.yaml)",
+        help=f"{_config_help()} (default: the built-in defaults, listed in configs/default.yaml)",
     )
     segment.add_argument(
         "--sensor-size",
@@ -214,7 +212,7 @@ def _parser() -> argparse.ArgumentParser:
         "scaling objects, small fast objects in sparse windows, weak textures), scored as the probe scenes",
     )
     synthetic.add_argument("--seeds", type=_seed_range, help="seeds (default 0-19, and 0-59 for a family)")
-    synthetic.add_argument("--config", type=_config_file, help=_CONFIG_HELP)
+    synthetic.add_argument("--config", type=_config_file, help=_config_help())
     synthetic.add_argument(
         "--pipeline-seeds",
         type=_seed_range,
@@ -233,7 +231,7 @@ def _parser() -> argparse.ArgumentParser:
         "and count the object as detected when the best non-background cluster's box has IoU > 0.5.",
     )
     eed.add_argument("folders", nargs="+", type=Path, metavar="FOLDER", help="EED sequence folders")
-    eed.add_argument("--config", type=_config_file, help=f"{_CONFIG_HELP} (default: eed)")
+    eed.add_argument("--config", type=_config_file, help=f"{_config_help()} (default: eed)")
     eed.add_argument(
         "--window-ms", type=float, help="window length centred on each box (default from the config)"
     )
@@ -268,7 +266,7 @@ def _parser() -> argparse.ArgumentParser:
     evimo.add_argument(
         "--trusted", action="store_true", help="allow unpickling the file's meta (mask timestamps)"
     )
-    evimo.add_argument("--config", type=_config_file, help=_CONFIG_HELP)
+    evimo.add_argument("--config", type=_config_file, help=_config_help())
     evimo.add_argument("--window-ms", type=float, help="window length (default from the config)")
     evimo.add_argument("--json", type=Path, help="also write the results as JSON")
     _add_device(evimo)
@@ -309,7 +307,7 @@ def _parser() -> argparse.ArgumentParser:
         help="per-event mask of events to leave out (default: ambiguous); a file without the field ignores "
         "none, so e.g. `--ignore-field none` scores every event but noise",
     )
-    labelled.add_argument("--config", type=_config_file, help=f"{_CONFIG_HELP} (not with --predictions)")
+    labelled.add_argument("--config", type=_config_file, help=f"{_config_help()} (not with --predictions)")
     labelled.add_argument(
         "--sensor-size", type=_sensor_size, help="HxW (default: the file's sensor_size, height and width)"
     )
@@ -782,6 +780,12 @@ def _json_default(value):
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f"cannot write {type(value).__name__} as JSON")
+
+
+def _config_help() -> str:
+    from evseg_torch.config import shipped_configs
+
+    return f"YAML config, or a bundled config's name: {', '.join(shipped_configs())}"
 
 
 def _config_file(text: str) -> Path:

@@ -387,20 +387,27 @@ class SegmenterConfig(_Section):
     level_two: LevelTwoConfig = field(default_factory=LevelTwoConfig)
 
 
+def shipped_configs() -> tuple[str, ...]:
+    """The names of the configs shipped with the package, sorted, without ``.yaml``: ``default``, ``eed``,
+    ``evimo`` and ``fast``."""
+    configs = importlib.resources.files("evseg_torch") / "configs"
+    return tuple(
+        sorted(item.name[: -len(".yaml")] for item in configs.iterdir() if item.name.endswith(".yaml"))
+    )
+
+
 def bundled_config(name: str) -> Path:
-    """The path of a config shipped with the package: ``default``, ``eed``, ``evimo`` or ``fast`` (``.yaml``
-    optional).
+    """The path of a config shipped with the package (:func:`shipped_configs`; ``.yaml`` optional).
 
     Raises:
         ConfigError: no such config is shipped.
     """
-    configs = importlib.resources.files("evseg_torch") / "configs"
-    shipped = sorted(item.name for item in configs.iterdir() if item.name.endswith(".yaml"))
-    filename = name if name.endswith(".yaml") else f"{name}.yaml"
-    if filename not in shipped:
-        raise ConfigError(f"no bundled config {name!r}; shipped: {', '.join(shipped)}")
+    stem = name[: -len(".yaml")] if name.endswith(".yaml") else name
+    shipped = shipped_configs()
+    if stem not in shipped:
+        raise ConfigError(f"no bundled config {name!r}; shipped: {', '.join(f'{s}.yaml' for s in shipped)}")
     # The package is installed as files (a wheel or an editable install), never zipped.
-    return Path(str(configs / filename))
+    return Path(str(importlib.resources.files("evseg_torch") / "configs" / f"{stem}.yaml"))
 
 
 def replace_settings(section, **settings):

@@ -18,6 +18,7 @@ from evseg_torch.config import (
     dump_config,
     load_config,
     replace_config,
+    shipped_configs,
 )
 from evseg_torch.errors import ConfigError
 from evseg_torch.events import EventBatch
@@ -88,6 +89,11 @@ def test_missing_file():
 def test_shipped_configs_load_strictly(name):
     config = load_config(bundled_config(name))
     assert isinstance(config, SegmenterConfig)
+
+
+def test_shipped_configs_are_named_without_suffix():
+    assert shipped_configs() == ("default", "eed", "evimo", "fast")
+    assert bundled_config("fast.yaml") == bundled_config("fast")
 
 
 def test_default_yaml_equals_dataclass_defaults():
