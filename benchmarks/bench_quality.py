@@ -2,7 +2,8 @@
 
 * probe: the 24 labelled scenes of ``../shared/data/synthetic_probe`` from another scene generator
   (as ``evseg evaluate labelled``): mean accuracy, IMO IoU, detection, mean |cluster-count error|,
-  median ms per window;
+  median ms per window, and how many objects were missed and why (held by the background, merged with
+  another object, split over clusters, their own cluster's box stretched; means over the pipeline seeds);
 * hard: the ``hard`` family's scenes ``--hard-seeds`` (as ``evseg evaluate synthetic --family hard``),
   the same columns;
 * synthetic: the project's synthetic benchmark over ``--seeds`` (as ``evseg evaluate synthetic``),
@@ -35,6 +36,7 @@ from evseg_torch.errors import EvsegError
 from evseg_torch.evaluation.eed import detection_rate, evaluate_sequence, load_eed_sequence
 from evseg_torch.evaluation.labelled import evaluate_labelled
 from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
+from evseg_torch.metrics import OUTCOMES
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.threads import set_threads
 
@@ -44,6 +46,8 @@ REAL = ROOT.parent / "shared" / "data" / "real"
 EED_SEQUENCES = ("what_is_background", "occlusions")
 # Column title and key of the scene sets' summaries and of EED's detection rates.
 SCENE_COLUMNS = {"accuracy": "accuracy", "IoU": "iou", "detect": "detection", "|count|": "abs_count_error"}
+# Why objects were missed (evseg_torch.metrics.object_outcomes).
+MISS_COLUMNS = OUTCOMES[1:]
 EED_COLUMNS = {
     "IoU>0.5": "detection_rate",
     "I/GT": "detection_rate_overlap",
@@ -119,6 +123,12 @@ def table(results: dict) -> str:
             summary = results[name]["summary"]
             values = [f"{summary[key]:.3f}" for key in SCENE_COLUMNS.values()]
             lines.append(_row(name, int(summary["scenes"]), [*values, f"{summary['time_ms_median']:.0f}"]))
+    lines.append(_row("missed objects", "", MISS_COLUMNS))
+    for name in ("probe", "hard", "synthetic"):
+        if results[name] is not None:
+            summary = results[name]["summary"]
+            misses = [f"{summary.get(f'missed_{kind}', 0.0):.1f}" for kind in MISS_COLUMNS]
+            lines.append(_row(name, "", misses))
     lines.append(_row("EED detection (%)", "n", EED_COLUMNS))
     for name, row in results["eed"].items():
         lines.append(_row(name, int(row["evaluable"]), [f"{row[key]:.2f}" for key in EED_COLUMNS.values()]))

@@ -582,6 +582,7 @@ def _evaluate_synthetic(args) -> int:
             f"{summary['detection' + suffix]:>6.2f}"
         )
     print(_summary_line(summary))
+    print(_misses_line(summary))
     _write_json(
         args.json,
         {
@@ -751,6 +752,7 @@ def _evaluate_labelled(args) -> int:
     line = _summary_line(summary)
     # Predictions carry no time, so their summary ends before the (NaN) median time.
     print(line if args.predictions is None else line.rsplit(", median", 1)[0])
+    print(_misses_line(summary))
     dynamic = summarize_dynamic(scores)
     print("dynamic class: " + ", ".join(f"{name} {value:.3f}" for name, value in dynamic.items()))
     summary |= dynamic
@@ -766,6 +768,15 @@ def _summary_line(summary: dict) -> str:
         f"cluster-count error {summary['count_error']:+.2f} (|.| {summary['abs_count_error']:.2f}), "
         f"median {summary['time_ms_median']:.0f} ms per window"
     )
+
+
+def _misses_line(summary: dict) -> str:
+    """How many objects were missed, and why (:func:`~evseg_torch.metrics.object_outcomes`)."""
+    from evseg_torch.metrics import OUTCOMES
+
+    misses = {outcome: int(summary.get(f"missed_{outcome}", 0)) for outcome in OUTCOMES[1:]}
+    reasons = ", ".join(f"{count} {reason}" for reason, count in misses.items() if count)
+    return f"missed objects: {sum(misses.values())}" + (f" ({reasons})" if reasons else "")
 
 
 def _write_json(path: Path | None, data) -> None:

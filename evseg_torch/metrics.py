@@ -20,6 +20,10 @@ Definitions (reference §3):
   defined (:func:`success_rate`).
 * **Event IoU** (event level, as EVIMO2 evaluations report it per sequence): the IoU of the set of events
   predicted dynamic and the set of events on ground-truth object pixels (:func:`event_iou`).
+* **Why an object is missed** (:func:`object_outcomes`): the cluster holding most of a missed object's
+  events says what went wrong: the background's (``"background"``), one holding other objects' events too
+  (``"merged"``), one holding too little of the object (``"split"``: the rest lies in other clusters), or
+  its own cluster with a box that foreign or missing events move (``"stretched"``).
 * **Nested boxes**: the intersection covers more than half of the smaller box and the larger box's area
   is at most 4 times the smaller's (a compensated object inside the larger GT box drawn around its
   motion-blurred image counts; a box swallowing half the image does not).
@@ -232,6 +236,58 @@ def event_iou(is_dynamic: np.ndarray, events: np.ndarray, gt_mask: np.ndarray) -
             f"is_dynamic must be (N,) like the events, got {is_dynamic.shape} for {events.shape}"
         )
     return mask_iou(is_dynamic, np.asarray(gt_mask, dtype=bool)[events["y"], events["x"]])
+
+
+# Outcomes of :func:`object_outcomes`, the detected one first.
+OUTCOMES = ("detected", "background", "merged", "split", "stretched", "unassigned")
+# A holder with at least this many events of other objects per event of the object is "merged"; one with
+# less than this share of the object's events is "split" (docs/objects.md).
+_MERGED_SHARE, _SPLIT_SHARE = 0.3, 0.6
+
+
+def object_outcomes(
+    pred: np.ndarray, gt: np.ndarray, detected, dynamic: np.ndarray, ignore: int = -1
+) -> tuple[str, ...]:
+    """Each ground-truth object's outcome: ``"detected"``, or why it was missed (module docstring).
+
+    A missed object's *holder* is the cluster with most of its events. It is ``"background"`` when most
+    of the holder's events are predicted static; ``"merged"`` when the holder has at least 0.3 events of
+    other objects per event of this one; ``"split"`` when it holds under 60 % of the object's events;
+    ``"stretched"`` otherwise. ``"unassigned"``: none of the object's events has a cluster.
+
+    Args:
+        pred: predicted cluster of each event :math:`(N,)`; negative values are unassigned.
+        gt: ground-truth layer of each event :math:`(N,)`: 0 the background, ``ignore`` left out.
+        detected: whether each object is detected, one flag per layer above 0 of ``gt`` in increasing order.
+        dynamic: whether each event is predicted dynamic (off the background), bool :math:`(N,)`.
+
+    Returns:
+        One of :data:`OUTCOMES` per object, in the order of ``detected``.
+    """
+    pred, gt = _labels(pred, gt)
+    dynamic = np.asarray(dynamic, dtype=bool)
+    objects = [int(v) for v in np.unique(gt) if v > 0 and v != ignore]
+    if len(objects) != len(detected):
+        raise ShapeError(f"detected has {len(detected)} flags for {len(objects)} objects")
+    outcomes = []
+    for layer, found in zip(objects, detected, strict=True):
+        own = (gt == layer) & (pred >= 0)
+        if found or not np.any(own):
+            outcomes.append("detected" if found else "unassigned")
+            continue
+        holder = int(np.bincount(pred[own]).argmax())
+        held = pred == holder
+        foreign = np.count_nonzero(held & (gt > 0) & (gt != layer) & (gt != ignore))
+        share = np.count_nonzero(held & own) / np.count_nonzero(gt == layer)
+        if np.count_nonzero(dynamic[held]) * 2 < np.count_nonzero(held):
+            outcomes.append("background")
+        elif foreign >= _MERGED_SHARE * np.count_nonzero(held & own):
+            outcomes.append("merged")
+        elif share < _SPLIT_SHARE:
+            outcomes.append("split")
+        else:
+            outcomes.append("stretched")
+    return tuple(outcomes)
 
 
 def _labels(pred, gt) -> tuple[np.ndarray, np.ndarray]:

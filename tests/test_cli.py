@@ -336,6 +336,7 @@ def test_evaluate_labelled(tmp_path, capsys):
         expected = score_labelling(CascadedSegmenter(size)(events).labels, labels, xy, ignore=ambiguous)
         for key in ("accuracy", "iou", "detection", "count_error"):
             assert scored[key] == getattr(expected, key)
+        assert tuple(scored["outcomes"]) == expected.outcomes
     summary = result["summary"]
     assert summary["scenes"] == 2
     assert summary["accuracy"] == pytest.approx(np.mean([f["accuracy"] for f in files]))
@@ -417,6 +418,7 @@ def test_evaluate_labelled_predictions(tmp_path, capsys):
         lines[4]
         == "mean: accuracy 1.000, IMO IoU 1.000, detection 1.000, cluster-count error +0.00 (|.| 0.00)"
     )
+    assert lines[5] == "missed objects: 0"
     result = json.loads(out.read_text())
     assert result["method"] == "truth" and result["summary"]["scenes"] == 2
     assert [(f["name"], f["method"], f["accuracy"], f["iou"]) for f in result["files"]] == [

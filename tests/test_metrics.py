@@ -15,6 +15,7 @@ from evseg_torch.metrics import (
     mask_iou,
     match_clusters,
     mean_iou,
+    object_outcomes,
     per_object_iou,
     success_rate,
 )
@@ -147,3 +148,42 @@ class TestLearnedMaskerMetrics:
         assert np.isnan(event_iou(np.zeros(2, bool), events[3:], self.GT))
         with pytest.raises(ShapeError):
             event_iou(is_dynamic[:2], events, self.GT)
+
+
+class TestObjectOutcomes:
+    """Why each object is missed: read from the cluster that holds most of its events."""
+
+    # Layers: 0 background (10 events), objects 1..5 (10 events each); noise -1 left out.
+    gt = np.repeat([0, 1, 2, 3, 4, 5], 10)
+
+    def outcomes(self, pred, detected=(False,) * 5):
+        pred = np.asarray(pred)
+        dynamic = pred != 0  # cluster 0 is the background
+        return object_outcomes(pred, self.gt, list(detected), dynamic)
+
+    def test_each_reason(self):
+        pred = np.concatenate(
+            [
+                np.zeros(10),  # background
+                np.zeros(10),  # object 1 in the background's cluster
+                np.full(10, 2),  # objects 2 and 3 share cluster 2
+                np.full(10, 2),
+                np.r_[np.full(5, 4), np.full(5, 5)],  # object 4 split over clusters 4 and 5
+                np.r_[np.full(9, 6), -np.ones(1)],  # object 5 its own cluster (box stretched, say)
+            ]
+        ).astype(int)
+        assert self.outcomes(pred) == ("background", "merged", "merged", "split", "stretched")
+
+    def test_detected_objects_and_unassigned_ones(self):
+        pred = np.r_[np.zeros(10), np.full(10, 1), -np.ones(10), np.full(30, 3)].astype(int)
+        outcomes = self.outcomes(pred, detected=(True, False, False, False, False))
+        assert outcomes[:2] == ("detected", "unassigned")
+
+    def test_noise_and_ignored_events_are_not_foreign(self):
+        gt = np.r_[np.zeros(10), np.ones(10), -np.ones(10)].astype(int)
+        pred = np.r_[np.zeros(10), np.ones(20)].astype(int)
+        assert object_outcomes(pred, gt, [False], pred != 0) == ("stretched",)
+
+    def test_one_flag_per_object(self):
+        with pytest.raises(ShapeError):
+            object_outcomes(np.zeros(60, int), self.gt, [False], np.zeros(60, bool))

@@ -11,6 +11,9 @@ whatever label they get. Per window:
 * ``detection``: fraction of moving objects whose matched cluster's events have a bounding box (2nd–98th
   percentile of x and y) with IoU > 0.5 against the box of the object's own events (same percentiles);
 * ``count_error``: predicted clusters minus true layers (background included);
+* ``outcomes``: per moving object, ``"detected"`` or why it was missed
+  (:func:`~evseg_torch.metrics.object_outcomes`: held by the background, merged with another object, split
+  over clusters, or its own cluster's box stretched);
 * the dynamic-class metrics of learned maskers (:mod:`evseg_torch.metrics`), on the scored events:
   events are *dynamic* in truth when their layer is > 0, and predicted dynamic when off the background
   (the cascade: any cluster but the largest, the background rule of :mod:`.evimo`; another method's
@@ -46,6 +49,7 @@ from evseg_torch.metrics import (
     mask_iou,
     match_clusters,
     mean_iou,
+    object_outcomes,
     per_object_iou,
     success_rate,
 )
@@ -73,7 +77,8 @@ class LabelledScore:
 
     ``method`` names what labelled the events: ``"evseg"`` for the cascade, else the scored predictions'
     method; ``time_ms`` is NaN when the labelling's time is not known. ``dynamic_iou``, ``miou`` and
-    ``piou`` are the dynamic-class metrics (module docstring), NaN where undefined.
+    ``piou`` are the dynamic-class metrics (module docstring), NaN where undefined; ``outcomes`` says, per
+    moving object in increasing layer order, ``"detected"`` or why it was missed.
     """
 
     name: str
@@ -88,6 +93,7 @@ class LabelledScore:
     dynamic_iou: float = float("nan")
     miou: float = float("nan")
     piou: float = float("nan")
+    outcomes: tuple[str, ...] = ()
 
 
 def percentile_box(xy: np.ndarray) -> np.ndarray:
@@ -175,6 +181,7 @@ def score_labelling(
         dynamic_iou=mask_iou(pred_dynamic, gt_dynamic),
         miou=mean_iou(pred_dynamic, gt_dynamic),
         piou=_pixel_iou(xy[kept], pred_dynamic, gt_dynamic),
+        outcomes=object_outcomes(pred, scored, detected, dynamic, _NOISE),
     )
 
 

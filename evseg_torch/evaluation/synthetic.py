@@ -17,6 +17,8 @@ families. Reported per scene:
 * ``detection``: fraction of objects detected: whose matched cluster has event IoU > 0.5 (default family),
   or whose matched cluster's 2nd-98th percentile box has IoU > 0.5 with the object's (``hard``);
 * ``count_error``: clusters found minus true layers (background included);
+* ``outcomes``: per object, ``"detected"`` or why it was missed
+  (:func:`~evseg_torch.metrics.object_outcomes`); :func:`summarize` counts the misses of each kind;
 * ``time_ms``: wall time of the segmentation of the window.
 """
 
@@ -26,12 +28,14 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from evseg_torch.metrics import labelling_accuracy, per_object_iou
+from evseg_torch.evaluation.evimo import background_cluster
+from evseg_torch.metrics import OUTCOMES, labelling_accuracy, object_outcomes, per_object_iou
 
 
 @dataclass(frozen=True)
 class SceneScore:
-    """Scores of one scene; ``kinds`` names its failure modes (``similar+spinning``) in a family."""
+    """Scores of one scene; ``kinds`` names its failure modes (``similar+spinning``) in a family;
+    ``outcomes`` is each object's outcome (:func:`~evseg_torch.metrics.object_outcomes`)."""
 
     seed: int
     n_objects: int
@@ -42,6 +46,7 @@ class SceneScore:
     count_error: int
     time_ms: float
     kinds: str = ""
+    outcomes: tuple[str, ...] = ()
 
 
 def evaluate_synthetic(
@@ -85,8 +90,10 @@ def evaluate_synthetic(
 
 
 def summarize(scores) -> dict[str, float]:
-    """Means over scenes (``abs_count_error`` is the mean absolute cluster-count error), and the 10th
-    percentiles ``accuracy_p10``, ``iou_p10`` and ``detection_p10`` over scenes: the worst tenth."""
+    """Means over scenes (``abs_count_error`` is the mean absolute cluster-count error), the 10th
+    percentiles ``accuracy_p10``, ``iou_p10`` and ``detection_p10`` over scenes (the worst tenth), and
+    ``missed_<outcome>``: how many objects were missed for each reason of
+    :func:`~evseg_torch.metrics.object_outcomes`, over all scenes."""
     table = [asdict(s) for s in scores]
     summary = {"scenes": len(table)}
     for key in ("accuracy", "iou", "detection"):
@@ -98,6 +105,10 @@ def summarize(scores) -> dict[str, float]:
         "count_error": float(np.mean([r["count_error"] for r in table])),
         "abs_count_error": float(np.mean([abs(r["count_error"]) for r in table])),
         "time_ms_median": float(np.median([r["time_ms"] for r in table])),
+        **{
+            f"missed_{outcome}": float(sum(r.get("outcomes", ()).count(outcome) for r in table))
+            for outcome in OUTCOMES[1:]
+        },
     }
 
 
@@ -115,6 +126,7 @@ def _score_default(segmenter, seed: int, sensor_size, duration, true_models: boo
     result = _segment(segmenter, scene, true_models)
     truth = np.where(scene.ambiguous, -1, scene.labels)
     ious = np.array(list(per_object_iou(result.labels, truth).values()))
+    dynamic = (result.labels >= 0) & (result.labels != background_cluster(result.labels))
     return SceneScore(
         seed=seed,
         n_objects=n_objects,
@@ -124,6 +136,7 @@ def _score_default(segmenter, seed: int, sensor_size, duration, true_models: boo
         detection=float(np.mean(ious > 0.5)),
         count_error=int(result.n_clusters - len(scene.motions)),
         time_ms=float(result.timings_ms["total"]),
+        outcomes=object_outcomes(result.labels, truth, ious > 0.5, dynamic),
     )
 
 
@@ -147,4 +160,5 @@ def _score_family(segmenter, family: str, seed: int, sensor_size, duration, true
         count_error=score.count_error,
         time_ms=float(result.timings_ms["total"]),
         kinds="+".join(family_kinds(family, seed)),
+        outcomes=score.outcomes,
     )

@@ -72,6 +72,7 @@ def test_hard_family_oracle_scores_perfectly_and_names_the_kinds():
     assert [s.n_events for s in scores] == [len(_hard_scene(s).events) for s in seeds]
     for score in scores:
         assert score.accuracy == score.iou == score.detection == 1.0 and score.count_error == 0
+        assert score.outcomes == ("detected",) * score.n_objects
 
 
 def test_hard_family_merged_objects_miss_detections():
@@ -81,6 +82,7 @@ def test_hard_family_merged_objects_miss_detections():
     assert _hard_scene(0).n_objects == 3
     # The merged cluster matches one object, but its box spans all three: none is detected.
     assert score.count_error == -2 and score.detection == 0.0 and score.iou < 1 / 3
+    assert score.outcomes == ("merged",) * 3
 
 
 def test_unknown_family_is_a_config_error():
@@ -94,6 +96,14 @@ def test_summary_has_means_and_10th_percentiles():
     assert summary["accuracy"] == pytest.approx(0.725) and summary["iou"] == pytest.approx(0.45)
     assert summary["accuracy_p10"] == pytest.approx(0.545) and summary["iou_p10"] == pytest.approx(0.09)
     assert summary["detection"] == pytest.approx(0.8) and summary["detection_p10"] == 0.0
+
+
+def test_summary_counts_the_misses_by_reason():
+    outcomes = [("detected", "merged"), ("merged", "background"), ("split",), ()]
+    scores = [SceneScore(s, 2, 100, 1.0, 1.0, 1.0, 0, 1.0, outcomes=o) for s, o in enumerate(outcomes)]
+    summary = summarize(scores)
+    assert (summary["missed_merged"], summary["missed_background"], summary["missed_split"]) == (2, 1, 1)
+    assert summary["missed_stretched"] == 0 and "missed_detected" not in summary
 
 
 def test_true_models_reach_the_segmenter():
