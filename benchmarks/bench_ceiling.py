@@ -3,7 +3,8 @@
 Level one is skipped (``level_one.initial_models: replace``) and level two starts from the true model of
 every layer (background and objects), then labels, refits, discovers (``discovery_rounds`` rounds, as in a
 cold window) and resolves objects as usual,
-scored as ``evseg evaluate synthetic`` (our scenes) and ``evseg evaluate labelled`` (the probe) score.
+scored as ``evseg evaluate synthetic`` (our scenes) and ``evseg evaluate labelled`` (the probe) score,
+with the objects missed for each reason (:func:`~evseg_torch.metrics.object_outcomes`).
 The gap to the pipeline's own figures is what level one's pool costs; what remains is the energy's own
 limit. Our generator's scenes carry their motions in the project's convention (the ``hard`` family and
 the default scenes). The probe's motions are given about each layer's own centre; they are moved to the
@@ -26,6 +27,7 @@ from evseg_torch.evaluation.labelled import load_labelled, score_labelling
 from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
 from evseg_torch.events import to_torch
 from evseg_torch.level_two.contrast import contrast_loss
+from evseg_torch.metrics import OUTCOMES
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.threads import set_threads
 
@@ -88,7 +90,8 @@ def main() -> None:
     rounds = dict(args.set).get("carried_discovery_rounds", config.level_two.discovery_rounds)
     config = replace_config(config, carried_discovery_rounds=rounds)
     segmenter = CascadedSegmenter((180, 240), config)
-    print(f"{'set':<6} {'accuracy':>8} {'IoU':>6} {'detect':>6} {'|count|':>7}")
+    header = f"{'set':<6} {'accuracy':>8} {'IoU':>6} {'detect':>6} {'|count|':>7}"
+    print(f"{header}   missed: {' '.join(OUTCOMES[1:])}")
     sets = [("hard", "hard", args.hard), ("own", None, args.own)]
     for name, family, seeds in sets:
         s = summarize(evaluate_synthetic(segmenter, seeds, family=family, true_models=True))
@@ -99,7 +102,8 @@ def main() -> None:
 
 def _print(name: str, s: dict) -> None:
     scores = f"{s['accuracy']:>8.3f} {s['iou']:>6.3f} {s['detection']:>6.3f} {s['abs_count_error']:>7.2f}"
-    print(f"{name:<6} {scores}", flush=True)
+    misses = " ".join(f"{s[f'missed_{outcome}']:>{len(outcome)}.0f}" for outcome in OUTCOMES[1:])
+    print(f"{name:<6} {scores}{'':11}{misses}", flush=True)
 
 
 if __name__ == "__main__":
