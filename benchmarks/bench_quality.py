@@ -127,7 +127,7 @@ def table(results: dict) -> str:
     for name in ("probe", "hard", "synthetic"):
         if results[name] is not None:
             summary = results[name]["summary"]
-            misses = [f"{summary.get(f'missed_{kind}', 0.0):.1f}" for kind in MISS_COLUMNS]
+            misses = [f"{summary[f'missed_{kind}']:.1f}" for kind in MISS_COLUMNS]
             lines.append(_row(name, "", misses))
     lines.append(_row("EED detection (%)", "n", EED_COLUMNS))
     for name, row in results["eed"].items():

@@ -774,7 +774,7 @@ def _misses_line(summary: dict) -> str:
     """How many objects were missed, and why (:func:`~evseg_torch.metrics.object_outcomes`)."""
     from evseg_torch.metrics import OUTCOMES
 
-    misses = {outcome: int(summary.get(f"missed_{outcome}", 0)) for outcome in OUTCOMES[1:]}
+    misses = {outcome: int(summary[f"missed_{outcome}"]) for outcome in OUTCOMES[1:]}
     reasons = ", ".join(f"{count} {reason}" for reason, count in misses.items() if count)
     return f"missed objects: {sum(misses.values())}" + (f" ({reasons})" if reasons else "")
 
@@ -804,14 +804,11 @@ def _config_file(text: str) -> Path:
     (:func:`~evseg_torch.config.bundled_config`), so that ``--config fast`` works wherever the package is
     installed. A name that is neither stays a path, which ``load_config`` reports as missing."""
     path = Path(text)
-    if path.exists():
-        return path
-    from evseg_torch.config import bundled_config
+    from evseg_torch.config import bundled_config, shipped_configs
 
-    try:
-        return bundled_config(text)
-    except EvsegError:
+    if path.exists() or text.removesuffix(".yaml") not in shipped_configs():
         return path
+    return bundled_config(text)
 
 
 def _sensor_size(text: str) -> tuple[int, int]:

@@ -387,12 +387,20 @@ class SegmenterConfig(_Section):
     level_two: LevelTwoConfig = field(default_factory=LevelTwoConfig)
 
 
+def _configs_folder():
+    """The package's folder of shipped configs (installed as files, a wheel or editable, never zipped)."""
+    return importlib.resources.files("evseg_torch") / "configs"
+
+
 def shipped_configs() -> tuple[str, ...]:
     """The names of the configs shipped with the package, sorted, without ``.yaml``: ``default``, ``eed``,
     ``evimo`` and ``fast``."""
-    configs = importlib.resources.files("evseg_torch") / "configs"
     return tuple(
-        sorted(item.name[: -len(".yaml")] for item in configs.iterdir() if item.name.endswith(".yaml"))
+        sorted(
+            item.name.removesuffix(".yaml")
+            for item in _configs_folder().iterdir()
+            if item.name.endswith(".yaml")
+        )
     )
 
 
@@ -402,12 +410,11 @@ def bundled_config(name: str) -> Path:
     Raises:
         ConfigError: no such config is shipped.
     """
-    stem = name[: -len(".yaml")] if name.endswith(".yaml") else name
+    stem = name.removesuffix(".yaml")
     shipped = shipped_configs()
     if stem not in shipped:
         raise ConfigError(f"no bundled config {name!r}; shipped: {', '.join(f'{s}.yaml' for s in shipped)}")
-    # The package is installed as files (a wheel or an editable install), never zipped.
-    return Path(str(importlib.resources.files("evseg_torch") / "configs" / f"{stem}.yaml"))
+    return Path(str(_configs_folder() / f"{stem}.yaml"))
 
 
 def replace_settings(section, **settings):

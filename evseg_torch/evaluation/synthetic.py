@@ -106,7 +106,7 @@ def summarize(scores) -> dict[str, float]:
         "abs_count_error": float(np.mean([abs(r["count_error"]) for r in table])),
         "time_ms_median": float(np.median([r["time_ms"] for r in table])),
         **{
-            f"missed_{outcome}": float(sum(r.get("outcomes", ()).count(outcome) for r in table))
+            f"missed_{outcome}": float(sum(r["outcomes"].count(outcome) for r in table))
             for outcome in OUTCOMES[1:]
         },
     }
