@@ -1,7 +1,7 @@
 """One fit evaluation (a cluster's contrast loss and its gradient) through each fit backend.
 
 The refits and discovery evaluate ``warped_contrast_loss_and_grad`` (``fit_backend: torch``) or its
-compiled loop (``fit_backend: numba``, ``evseg_torch/level_two/fit_kernel.py``) a few dozen times per
+compiled loop (``fit_backend: numba``, ``evseg_torch/kernels/fit.py``) a few dozen times per
 window. Each case is one affine4 cluster of a synthetic 30 ms scene (``make_scene``, 180 x 240), its
 events subsampled to ``n``, evaluated in the whole sensor or in a crop around a corner of the scene (as
 discovery's regions are); the two backends alternate, ``--repeats`` times each, and the medians are
@@ -18,8 +18,8 @@ import numpy as np
 import torch
 
 from evseg_torch.events import EventBatch, to_torch
+from evseg_torch.kernels.fit import loss_and_grad
 from evseg_torch.level_two.contrast import MIN_AREA, warped_contrast_loss_and_grad
-from evseg_torch.level_two.fit_kernel import loss_and_grad
 from evseg_torch.level_two.iwe import extent_mask
 from evseg_torch.level_two.linear_warp import LinearWarp
 from evseg_torch.synthetic import make_scene

@@ -75,21 +75,23 @@ def record(pipeline_seeds: list[int], hard_seeds: list[int], own_seeds: list[int
         for scene_seed in hard_seeds:
             keep(f"hard/{scene_seed}/{seed}", segmenter(_family_scene("hard", scene_seed).events))
         for scene_seed in own_seeds:
-            scene = make_scene(sensor_size=(180, 240), duration=0.03, n_objects=1 + scene_seed % 3, rng=scene_seed)
+            scene = make_scene(
+                sensor_size=(180, 240), duration=0.03, n_objects=1 + scene_seed % 3, rng=scene_seed
+            )
             keep(f"own/{scene_seed}/{seed}", segmenter(scene.events))
         eed_config = replace_config(load_config(bundled_config("eed")), seed=seed)
         for folder in eed:
             if not folder.is_dir():
                 continue
             sequence = load_eed_sequence(folder)
-            count = iter(range(10**6))
+            windows = []
             evaluate_sequence(
                 sequence,
                 eed_config,
-                on_window=lambda result, segmentation, name=sequence.name: keep(
-                    f"eed/{name}/{next(count)}/{seed}", segmentation
-                ),
+                on_window=lambda result, segmentation, kept=windows: kept.append(segmentation),
             )
+            for index, segmentation in enumerate(windows):
+                keep(f"eed/{sequence.name}/{index}/{seed}", segmentation)
     return digests
 
 
@@ -99,9 +101,7 @@ def compare(baseline: dict, current: dict) -> int:
     shared = sorted(set(baseline) & set(current))
     labels = [key for key in shared if baseline[key]["labels"] != current[key]["labels"]]
     models = [
-        key
-        for key in shared
-        if baseline[key]["models"] != current[key]["models"] and key not in labels
+        key for key in shared if baseline[key]["models"] != current[key]["models"] and key not in labels
     ]
     for key in labels:
         print(f"labels differ: {key}")
@@ -124,7 +124,12 @@ def _seeds(text: str) -> list[int]:
 
 def _record_args(args) -> list[str]:
     return [
-        "--pipeline-seeds", args.pipeline_seeds, "--hard-seeds", args.hard_seeds, "--own-seeds", args.own_seeds,
+        "--pipeline-seeds",
+        args.pipeline_seeds,
+        "--hard-seeds",
+        args.hard_seeds,
+        "--own-seeds",
+        args.own_seeds,
     ]
 
 
@@ -132,7 +137,9 @@ def _record_release(revision: str, args, out: Path) -> None:
     """Record the digests of ``revision`` from a temporary worktree, with this interpreter."""
     with tempfile.TemporaryDirectory() as folder:
         tree = Path(folder) / "tree"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), revision], check=True)
+        subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), revision], check=True
+        )
         try:
             env = {**os.environ, "PYTHONPATH": str(tree)}
             command = [sys.executable, __file__, "record", *_record_args(args), "--out", str(out)]

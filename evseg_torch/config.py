@@ -254,9 +254,6 @@ class LevelTwoConfig(_Section):
             (:func:`~evseg_torch.level_two.contrast.contrast_loss`); 0 switches it off (EMSGC's plain
             objective).
         optimizer: ``lbfgs`` (batched L-BFGS of :mod:`~evseg_torch.level_two.solver`) or ``adam``.
-        fit_backend: how the fits' evaluations run: ``torch`` (tensor code, any device), ``numba`` (one
-            compiled loop per cluster on the CPU; needs the ``fast`` extra) or ``auto`` (``numba`` where
-            installed); see :func:`~evseg_torch.level_two.cmax.resolve_fit_backend`.
         max_iter: optimiser iterations of the first refit, which starts from the initial pool.
         warm_max_iter: iterations of each later refit, which starts from the previous refit's models
             (``None``: ``max_iter``).
@@ -337,7 +334,6 @@ class LevelTwoConfig(_Section):
     )
     collapse_weight: float = _setting(0.375, at_least=0)
     optimizer: str = _setting("lbfgs", choices=_Names("evseg_torch.level_two.cmax", "OPTIMIZERS"))
-    fit_backend: str = _setting("auto", choices=_Names("evseg_torch.level_two.cmax", "FIT_BACKENDS"))
     max_iter: int = _setting(6, at_least=1)
     warm_max_iter: int | None = _setting(3, at_least=1)
     lr: float | None = _setting(None, above=0)

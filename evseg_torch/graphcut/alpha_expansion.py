@@ -44,7 +44,7 @@ shows up.
 Speed: the graphs number the nodes in reverse Cuthill-McKee order, computed once per edge set (see
 :class:`_Layout`; a :class:`PottsGraph` from :func:`potts_graph` carries it across calls), and are
 built from precomputed edge arrays with a handful of vectorised passes per move, or two compiled loops
-where Numba is installed (:mod:`~evseg_torch.graphcut.expansion_kernel`, the same graphs bit for bit);
+where Numba is installed (:mod:`~evseg_torch.kernels.expansion`, the same graphs bit for bit);
 the maximum flow itself (Boykov-Kolmogorov, single-threaded) takes most of the time.
 """
 
@@ -57,7 +57,7 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from evseg_torch.compiled import compiled_step
+from evseg_torch.backend import kernel
 from evseg_torch.errors import EvsegError, ShapeError
 
 __all__ = [
@@ -389,7 +389,7 @@ def _add_label_costs(graph, label_cost, member_label, members, n_groups) -> None
 
 
 def _move_terms(problem: _Problem, labels: np.ndarray, alpha: int):
-    """The arrays of one α-move: the NumPy form of :func:`~evseg_torch.graphcut.expansion_kernel.move_terms`
+    """The arrays of one α-move: the NumPy form of :func:`~evseg_torch.kernels.expansion.move_terms`
     (the same returns, bit for bit)."""
     layout = problem.layout
     n_nodes, n_labels = problem.unary.shape
@@ -448,7 +448,7 @@ def _expand(problem: _Problem, labels: np.ndarray, alpha: int) -> np.ndarray:
     layout = problem.layout
     if not np.any(labels != alpha):
         return labels.copy()
-    compiled = compiled_step("graphcut.expansion_kernel.move_terms")
+    compiled = kernel("expansion.move_terms")
     if compiled is None:
         terms = _move_terms(problem, labels, alpha)
     else:

@@ -5,8 +5,8 @@ its own gathered events, in a crop around it where it is small (:mod:`~evseg_tor
 through the warp's linear map (:mod:`~evseg_torch.level_two.linear_warp`); all clusters of all windows
 of a call are one batched problem of the solvers of :mod:`~evseg_torch.level_two.solver`. Each
 evaluation is tensor code (:func:`~evseg_torch.level_two.contrast.warped_contrast_loss_and_grad`) or, for
-float32 fits on the CPU, one compiled loop per cluster (:mod:`~evseg_torch.level_two.fit_kernel`, the
-``fit_backend`` setting).
+float32 fits on the CPU, one compiled loop per cluster (:mod:`~evseg_torch.kernels.fit`, as
+:mod:`evseg_torch.backend` chooses).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from evseg_torch.compiled import compiled_step
+from evseg_torch.backend import kernel
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one
 from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
@@ -39,32 +39,6 @@ from evseg_torch.motion import MotionModel
 
 OPTIMIZERS = ("lbfgs", "adam")
 """The refits' optimisers (:class:`ContrastMaximization`)."""
-
-FIT_BACKENDS = ("auto", "torch", "numba")
-"""How the fits' evaluations run (:func:`resolve_fit_backend`)."""
-
-
-def resolve_fit_backend(backend: str) -> Callable | None:
-    """The compiled evaluation of :mod:`~evseg_torch.level_two.fit_kernel` that ``backend`` asks for, or
-    ``None`` for the tensor code (:func:`~evseg_torch.level_two.contrast.warped_contrast_loss_and_grad`).
-
-    ``"torch"``: the tensor code, on every device. ``"numba"``: the compiled loop for float32 fits on the
-    CPU (the tensor code elsewhere); it needs the optional ``numba`` package. ``"auto"``: ``"numba"`` where
-    that package is installed, else ``"torch"``. The two agree up to rounding; the compiled loop takes
-    0.09-0.55 of the tensor code's time per evaluation (``docs/speed.md``).
-
-    Raises:
-        ConfigError: for an unknown backend, or ``"numba"`` without the package.
-    """
-    if backend not in FIT_BACKENDS:
-        raise ConfigError(f"fit_backend must be one of {FIT_BACKENDS}, got {backend!r}")
-    if backend == "torch":
-        return None
-    kernel = compiled_step("level_two.fit_kernel.loss_and_grad")
-    if kernel is None and backend == "numba":
-        raise ConfigError("fit_backend 'numba' needs the numba package: pip install 'evseg-torch[fast]'")
-    return kernel
-
 
 class ContrastMaximization(nn.Module):
     r"""Refine the motion parameters of K clusters at once by contrast maximisation.
@@ -102,7 +76,6 @@ class ContrastMaximization(nn.Module):
         collapse_weight: exponent γ of the event-collapse guard; 0 switches it off.
         tol: a cluster stops when its normalised loss changes by less than this, or (L-BFGS) when
             its step or gradient is smaller than this in conditioned units.
-        fit_backend: how the evaluations run, a key of :data:`FIT_BACKENDS` (:func:`resolve_fit_backend`).
 
     Shape:
         - Input: ``events`` an :class:`EventBatch` of N events, ``init_params`` :math:`(K, P)`,
@@ -136,12 +109,9 @@ class ContrastMaximization(nn.Module):
         sigma: float = 1.0,
         collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
         tol: float = 1e-6,
-        fit_backend: str = "auto",
     ) -> None:
         super().__init__()
         check_objective(objective)
-        self.kernel = resolve_fit_backend(fit_backend)
-        self.fit_backend = fit_backend
         if optimizer not in OPTIMIZERS:
             raise ConfigError(f"optimizer must be {' or '.join(map(repr, OPTIMIZERS))}, got {optimizer!r}")
         if lr is not None and not lr > 0:
@@ -234,9 +204,11 @@ class ContrastMaximization(nn.Module):
         return kernel(warp, params, weights, extent, *args, gradient=False)[0]
 
     def _kernel_for(self, xy: Tensor) -> Callable | None:
-        """The compiled evaluation for clusters at positions ``xy``: only float32 fits on the CPU take it;
-        ``None`` for the tensor code."""
-        return self.kernel if xy.device.type == "cpu" and xy.dtype == torch.float32 else None
+        """The compiled evaluation (:mod:`evseg_torch.backend`) for clusters at positions ``xy``: only float32
+        fits on the CPU take it; ``None`` for the tensor code."""
+        if xy.device.type != "cpu" or xy.dtype != torch.float32:
+            return None
+        return kernel("fit.loss_and_grad")
 
     def _fit_windows(self, events: EventBatch, init: Tensor, weights: Tensor | None, max_iter: int) -> Tensor:
         """Fit the clusters of a padded batch: ``init`` :math:`(B, K, P)`, ``weights`` :math:`(B, K, N)`."""
@@ -308,7 +280,7 @@ class ContrastMaximization(nn.Module):
         return (
             f"model={self.model.name}, sensor_size={self.sensor_size}, objective={self.objective!r}, "
             f"optimizer={self.optimizer!r}, max_iter={self.max_iter}, lr={self.lr}, sigma={self.sigma}, "
-            f"collapse_weight={self.collapse_weight}, tol={self.tol}, fit_backend={self.fit_backend!r}"
+            f"collapse_weight={self.collapse_weight}, tol={self.tol}"
         )
 
 

@@ -68,7 +68,7 @@ centres, where bilinear interpolation would need a pixel beyond the border. No i
 
 Speed: where Numba (the optional ``fast`` extra) is installed, the per-polarity images of ``"relative"``
 costs on the CPU (level two's data term) are splatted, blurred and read in one compiled pass per model,
-and their margins and normalisation run as compiled loops (:mod:`~evseg_torch.level_two.data_term_kernel`),
+and their margins and normalisation run as compiled loops (:mod:`~evseg_torch.kernels.data_term`),
 the same costs bit for bit; with a gradient to keep, the tensor code runs.
 """
 
@@ -81,7 +81,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from evseg_torch.compiled import compiled_step
+from evseg_torch.backend import kernel
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one
 from evseg_torch.level_two.iwe import extent_mask, read_flat, splat_events, warp_events
@@ -277,12 +277,12 @@ def data_cost(
         and warped.device.type == "cpu"
         and warped.dtype == torch.float32
         and not (torch.is_grad_enabled() and warped.requires_grad)
-        and compiled_step("level_two.data_term_kernel.polarity_values") is not None
+        and kernel("data_term.polarity_values") is not None
     )
     if margin is not None:
         margins = [margin] * n_windows
     else:
-        overshoots = compiled_step("level_two.data_term_kernel.overshoots") if compiled else _overshoots
+        overshoots = kernel("data_term.overshoots") if compiled else _overshoots
         margins = _margins(overshoots(warped, real, height, width).tolist(), height, width)
     widest = max(margins)
     if widest:
@@ -297,10 +297,10 @@ def data_cost(
     if compiled and min(size) > 1:
         # The same values, flags and costs as the tensor code below, in one compiled pass per model.
         sizes = np.array(size) if extent is None else extent[:, 0].cpu().numpy()
-        values, inside = compiled_step("level_two.data_term_kernel.polarity_values")(
+        values, inside = kernel("data_term.polarity_values")(
             warped, events.p <= 0, votes[:, 0], np.broadcast_to(sizes, (n_windows, 2)), sigma
         )
-        costs = compiled_step("level_two.data_term_kernel.relative_costs")
+        costs = kernel("data_term.relative_costs")
         cost = costs(values, inside, real, floor_quantile, pool_floor_quantile)
         return cost if batched else cost[0]
     if polarity:

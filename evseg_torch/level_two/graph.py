@@ -45,7 +45,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from evseg_torch.compiled import compiled_step
+from evseg_torch.backend import kernel
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EVENT_DTYPE, EventBatch, check_sensor_size
 
@@ -225,7 +225,7 @@ def _pair_slot_counts(
     """Event pairs joined by the lookups per (adjacent pixel pair, slice at its first pixel, slice at its
     second): float64, ``A * slices**2`` counts, at ``(pair * slices + slot_low) * slices + slot_high``. In
     one slice the compiled count serves where Numba is installed (the same counts)."""
-    compiled = compiled_step("level_two.graph_kernel.pair_counts") if slices == 1 else None
+    compiled = kernel("graph.pair_counts") if slices == 1 else None
     if compiled is not None:
         return compiled(pixel, t, pixel_pairs)
     found = _lookups(pixel, pixel_pairs, t)

@@ -40,6 +40,9 @@ from evseg_torch.events import EventBatch
 from evseg_torch.level_two.checks import check_blur, check_points, check_sensor_size
 from evseg_torch.motion import MotionModel
 
+BLUR_TRUNCATE = 3.0
+"""The blur kernel reaches ``ceil(BLUR_TRUNCATE * sigma)`` pixels each side."""
+
 
 def warp_events(model: MotionModel, xy: Tensor, t: Tensor, params: Tensor) -> Tensor:
     r"""Warp events to the reference time with one or several motions: ``x' = x - t v(x; params)``.
@@ -84,7 +87,7 @@ def splat_events(
     sensor_size: tuple[int, int],
     weights: Tensor | None = None,
     sigma: float = 1.0,
-    truncate: float = 3.0,
+    truncate: float = BLUR_TRUNCATE,
     polarity: Tensor | None = None,
     extent: Tensor | None = None,
 ) -> Tensor:
@@ -194,7 +197,24 @@ def extent_mask(extent: Tensor, size: tuple[int, int]) -> Tensor:
     return rows.transpose(-1, -2) & cols
 
 
-def gaussian_blur(image: Tensor, sigma: float, truncate: float = 3.0) -> Tensor:
+def gaussian_taps(sigma: float, truncate: float = BLUR_TRUNCATE) -> tuple[float, ...]:
+    """The taps of :func:`gaussian_blur`: ``exp(-d^2 / (2 sigma^2))`` for ``|d| <= ceil(truncate * sigma)``,
+    normalised to sum 1; one tap of 1 for ``sigma`` 0. The tensor code and the compiled kernels
+    (:mod:`evseg_torch.kernels`) blur with these taps.
+
+    Examples:
+        >>> [round(tap, 3) for tap in gaussian_taps(0.5)]
+        [0.0, 0.106, 0.787, 0.106, 0.0]
+    """
+    if sigma == 0:
+        return (1.0,)
+    radius = math.ceil(truncate * sigma)
+    taps = [math.exp(-0.5 * (d / sigma) ** 2) for d in range(-radius, radius + 1)]
+    total = math.fsum(taps)
+    return tuple(tap / total for tap in taps)
+
+
+def gaussian_blur(image: Tensor, sigma: float, truncate: float = BLUR_TRUNCATE) -> Tensor:
     r"""Separable Gaussian blur of the last two dimensions with zero padding.
 
     The kernel is ``exp(-d^2 / (2 sigma^2))`` for ``|d| <= ceil(truncate * sigma)``, normalised to
@@ -215,10 +235,7 @@ def gaussian_blur(image: Tensor, sigma: float, truncate: float = 3.0) -> Tensor:
     check_blur(sigma, truncate)
     if sigma == 0:
         return image
-    radius = math.ceil(truncate * sigma)
-    taps = [math.exp(-0.5 * (d / sigma) ** 2) for d in range(-radius, radius + 1)]
-    total = math.fsum(taps)
-    taps = tuple(tap / total for tap in taps)
+    taps = gaussian_taps(sigma, truncate)
     if torch.is_grad_enabled() and image.requires_grad:
         return _SymmetricBlur.apply(image, taps)
     # Without a gradient to keep, the sums alone: the fits' evaluations blur twice each, mostly small
@@ -308,7 +325,9 @@ class ImageOfWarpedEvents(nn.Module):
         torch.Size([2, 8, 8])
     """
 
-    def __init__(self, sensor_size: tuple[int, int], sigma: float = 1.0, truncate: float = 3.0) -> None:
+    def __init__(
+        self, sensor_size: tuple[int, int], sigma: float = 1.0, truncate: float = BLUR_TRUNCATE
+    ) -> None:
         super().__init__()
         self.sensor_size = check_sensor_size(sensor_size)
         check_blur(sigma, truncate)

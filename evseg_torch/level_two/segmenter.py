@@ -178,7 +178,6 @@ class GraphCutContrastSegmenter(nn.Module):
             "lr": cfg.lr,
             "sigma": cfg.sigma,
             "collapse_weight": cfg.collapse_weight,
-            "fit_backend": cfg.fit_backend,
         }
         # One contrast maximisation for the refits and discovery's fits; each call gives its iterations.
         self.refit = ContrastMaximization(self.model, self.sensor_size, max_iter=cfg.max_iter, **refit)

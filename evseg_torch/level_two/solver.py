@@ -12,7 +12,7 @@ of the evaluations: on arrays of a few dozen numbers, each torch operation costs
 bookkeeping of one L-BFGS round: 665 µs as torch code, 202 µs in NumPy). Only the trial points go to
 the device, in the dtype of the start, and only the losses and gradients come back. Where Numba (the
 optional ``fast`` extra) is installed, L-BFGS's bookkeeping between two evaluations runs as one compiled
-call (:mod:`~evseg_torch.level_two.solver_kernel`), the same rounds step by step.
+call (:mod:`~evseg_torch.kernels.solver`), the same rounds step by step.
 
 Each row follows the path it follows alone: its updates are elementwise or reduce over its own
 parameters only, so a problem's result does not depend on the other problems, bit for bit on one
@@ -35,20 +35,20 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evseg_torch.compiled import compiled_step
+from evseg_torch.backend import kernel
 
 Evaluate = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 """``evaluate(rows, x)``: the losses :math:`(R,)` and gradients :math:`(R, P)` of problems ``rows``
 (int64 :math:`(R,)`, ascending) at their values ``x`` :math:`(R, P)`."""
 
-_ARMIJO = 1e-4  # sufficient decrease: f(x + t d) <= f(x) + c t g'd (torch's c1)
-_WOLFE = 0.9  # curvature: a step is long enough once g(x + t d)'d >= c g'd (torch's c2)
-_GROW = (2.0, 10.0)  # a longer step, as multiples of the last (torch extrapolates up to 10 times)
-_SHRINK = (0.1, 0.5)  # a rejected step's successor, as fractions of it
-_BACK = 0.9  # a step past the minimum is followed by one of at most this fraction of it
-_TINY_STEP = 1e-9  # a line search gives up on steps shorter than this in every coordinate
-_CURVATURE = 1e-10  # torch's threshold on s'y for keeping a curvature pair
-_MAX_TRIALS = 25  # evaluations per line search (torch's max_ls)
+ARMIJO = 1e-4  # sufficient decrease: f(x + t d) <= f(x) + c t g'd (torch's c1)
+WOLFE = 0.9  # curvature: a step is long enough once g(x + t d)'d >= c g'd (torch's c2)
+GROW = (2.0, 10.0)  # a longer step, as multiples of the last (torch extrapolates up to 10 times)
+SHRINK = (0.1, 0.5)  # a rejected step's successor, as fractions of it
+BACK = 0.9  # a step past the minimum is followed by one of at most this fraction of it
+TINY_STEP = 1e-9  # a line search gives up on steps shorter than this in every coordinate
+CURVATURE = 1e-10  # torch's threshold on s'y for keeping a curvature pair
+MAX_TRIALS = 25  # evaluations per line search (torch's max_ls)
 
 
 def _largest(a: np.ndarray) -> np.ndarray:
@@ -100,7 +100,7 @@ def lbfgs(
     Returns:
         The final values :math:`(C, P)`, on the device and in the dtype of ``start``.
     """
-    run = compiled_step("level_two.solver_kernel.lbfgs") or _lbfgs
+    run = kernel("solver.lbfgs") or _lbfgs
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         found = run(_Evaluations(evaluate, start), _as_array(start), max_iter, lr, tol)
     return torch.as_tensor(found, device=start.device)
@@ -125,7 +125,7 @@ def _lbfgs(evaluate: _Evaluations, x: np.ndarray, max_iter: int, lr: float, tol:
         evals[rows] += 1
         trials += running
         step, searching = search.update(
-            running, rows, trial, loss, slope, direction, step, trials < _MAX_TRIALS
+            running, rows, trial, loss, slope, direction, step, trials < MAX_TRIALS
         )
         accept = running & ~searching & search.found
         taken = search.step[:, None] * direction
@@ -170,7 +170,7 @@ class _History:
     def push(self, rows: np.ndarray, s: np.ndarray, y: np.ndarray) -> None:
         """Append the pair ``(s, y)`` of each row of the mask ``rows`` whose curvature is positive."""
         curvature = _dot(s, y)
-        index = np.flatnonzero(rows & (curvature > _CURVATURE))
+        index = np.flatnonzero(rows & (curvature > CURVATURE))
         if len(index):
             slot = self.pairs[index]
             self.steps[index, slot] = s[index]
@@ -212,7 +212,7 @@ class _Search:
     step if there is one, and otherwise shrinks the step (the minimum of the quadratic through f(0),
     f'(0) and f(t), 10–50 % of it). A best step past the minimum, where the directional derivative
     has turned steeply positive, is followed by the secant's zero between 0 and it (at most 90 % of
-    it). A search also ends after ``_MAX_TRIALS`` trials or when its step is below ``_TINY_STEP`` in
+    it). A search also ends after ``MAX_TRIALS`` trials or when its step is below ``TINY_STEP`` in
     every coordinate.
     """
 
@@ -237,28 +237,28 @@ class _Search:
         trial_loss, trial_grad = np.zeros_like(loss), np.zeros_like(self.grad)
         trial_loss[rows], trial_grad[rows] = trial
         trial_slope = _dot(trial_grad, direction)
-        sufficient = trial_loss <= loss + _ARMIJO * step * slope
+        sufficient = trial_loss <= loss + ARMIJO * step * slope
         better = active & sufficient & ~(self.found & (trial_loss > self.loss))
         self.loss = np.where(better, trial_loss, self.loss)
         self.grad = np.where(better[:, None], trial_grad, self.grad)
         self.step = np.where(better, step, self.step)
         self.found = self.found | better
-        longer = better & (trial_slope < _WOLFE * slope)
+        longer = better & (trial_slope < WOLFE * slope)
         # Past the minimum and rising steeply there: the minimum lies between 0 and the step.
-        back = better & (trial_slope > -_WOLFE * slope)
+        back = better & (trial_slope > -WOLFE * slope)
         shorter = active & ~better & ~self.found
         # The secant's zero of the directional derivative: beyond the step where the slope flattens
         # (where it steepens, the longest step), within it where the slope turned positive.
         secant = step * slope / (slope - trial_slope)
-        grown = np.where(trial_slope > slope, secant, _GROW[1] * step)
-        grown = np.minimum(np.maximum(grown, _GROW[0] * step), _GROW[1] * step)
-        inside = np.minimum(np.maximum(secant, _SHRINK[0] * step), _BACK * step)
+        grown = np.where(trial_slope > slope, secant, GROW[1] * step)
+        grown = np.minimum(np.maximum(grown, GROW[0] * step), GROW[1] * step)
+        inside = np.minimum(np.maximum(secant, SHRINK[0] * step), BACK * step)
         curve = trial_loss - loss - slope * step
         shrunk = -slope * step * step / (2 * curve)
-        shrunk = np.where(np.isfinite(shrunk) & (curve > 0), shrunk, _SHRINK[1] * step)
-        shrunk = np.minimum(np.maximum(shrunk, _SHRINK[0] * step), _SHRINK[1] * step)
+        shrunk = np.where(np.isfinite(shrunk) & (curve > 0), shrunk, SHRINK[1] * step)
+        shrunk = np.minimum(np.maximum(shrunk, SHRINK[0] * step), SHRINK[1] * step)
         next_step = np.where(longer, grown, np.where(back, inside, shrunk))
-        long_enough = _largest(next_step[:, None] * direction) > _TINY_STEP
+        long_enough = _largest(next_step[:, None] * direction) > TINY_STEP
         searching = (longer | ((back | shorter) & long_enough)) & budget
         return np.where(searching, next_step, step), searching
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from evseg_torch.kernels.common import maximum
 from evseg_torch.level_two import solver
 
 _OPTIONS = {"cache": True, "error_model": "numpy"}  # IEEE results of x / 0, as NumPy's
@@ -29,18 +30,18 @@ def lbfgs(evaluate, x: np.ndarray, max_iter: int, lr: float, tol: float) -> np.n
         [
             lr,
             tol,
-            solver._ARMIJO,
-            solver._WOLFE,
-            *solver._GROW,
-            *solver._SHRINK,
-            solver._BACK,
-            solver._TINY_STEP,
-            solver._CURVATURE,
+            solver.ARMIJO,
+            solver.WOLFE,
+            *solver.GROW,
+            *solver.SHRINK,
+            solver.BACK,
+            solver.TINY_STEP,
+            solver.CURVATURE,
             np.finfo(x.dtype).tiny,
         ],
         dtype=dtype,
     )
-    limits = np.array([max_iter, max_iter * 5 // 4, solver._MAX_TRIALS], dtype=np.int64)
+    limits = np.array([max_iter, max_iter * 5 // 4, solver.MAX_TRIALS], dtype=np.int64)
     n_rows, n_params = x.shape
     loss, grad = evaluate(np.arange(n_rows), x)
     x = x.copy()
@@ -102,11 +103,6 @@ def _largest(a):
 
 
 @njit(**_OPTIONS)
-def _maximum(a, b):
-    return a if (a != a or a >= b) else b
-
-
-@njit(**_OPTIONS)
 def _minimum(a, b):
     return a if (a != a or a <= b) else b
 
@@ -158,13 +154,13 @@ def _advance(x, loss, grad, evals, iterations, steps, changes, inverse, pairs, d
         shorter = not better and not found[c]
         secant = step[c] * slope[c] / (slope[c] - t_slope)
         grown = secant if t_slope > slope[c] else grow_max * step[c]
-        grown = _minimum(_maximum(grown, grow_min * step[c]), grow_max * step[c])
-        inside = _minimum(_maximum(secant, shrink_min * step[c]), back_max * step[c])
+        grown = _minimum(maximum(grown, grow_min * step[c]), grow_max * step[c])
+        inside = _minimum(maximum(secant, shrink_min * step[c]), back_max * step[c])
         curve = t_loss - loss[c] - slope[c] * step[c]
         shrunk = -slope[c] * step[c] * step[c] / (two * curve)
         if not (np.isfinite(shrunk) and curve > 0):
             shrunk = shrink_max * step[c]
-        shrunk = _minimum(_maximum(shrunk, shrink_min * step[c]), shrink_max * step[c])
+        shrunk = _minimum(maximum(shrunk, shrink_min * step[c]), shrink_max * step[c])
         next_step = grown if longer else (inside if back else shrunk)
         for p in range(n_params):
             taken[p] = next_step * direction[c, p]
@@ -216,7 +212,7 @@ def _advance(x, loss, grad, evals, iterations, steps, changes, inverse, pairs, d
         if used:
             newest = max(pairs[c] - 1, 0)
             s, y = steps[c, newest], changes[c, newest]
-            gamma = _dot(s, y) / _maximum(_dot(y, y), tiny) if pairs[c] > 0 else one
+            gamma = _dot(s, y) / maximum(_dot(y, y), tiny) if pairs[c] > 0 else one
             for p in range(n_params):
                 q[p] = q[p] * gamma
             for slot in range(used):

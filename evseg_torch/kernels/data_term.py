@@ -5,7 +5,7 @@ window under every model of its pool into two images, blurs them and reads each 
 own sign's image: a dozen tensor passes over ``B * K * N`` positions and ``2 B K`` canvases.
 :func:`polarity_values` does the same per model in one compiled loop whose arithmetic follows the
 tensor code step by step: the bilinear votes added in the same order (every event's first tap, then
-every event's second, ...), the blur of :func:`~evseg_torch.level_two.fit_kernel._blur` (the tensor
+every event's second, ...), the blur of :func:`~evseg_torch.kernels.common.blur` (the tensor
 blur bit for bit), the reads' clamps and products in float32. Its values and ``inside`` flags equal the
 tensor code's bit for bit (tested), so the choice changes no result; it serves where Numba (the
 optional ``fast`` extra) is installed. :func:`overshoots` and :func:`relative_costs` do the steps around it
@@ -21,8 +21,7 @@ import torch
 from numba import njit
 from torch import Tensor
 
-from evseg_torch.level_two.fit_kernel import _ONE, _ZERO, _blur, _corner, blur_taps
-from evseg_torch.level_two.solver_kernel import _maximum
+from evseg_torch.kernels.common import ONE, ZERO, bilinear_corner, blur, blur_taps, maximum
 
 _MAX_COST = np.float32(255.0)
 _TINY = np.finfo(np.float32).tiny
@@ -74,10 +73,10 @@ def _polarity_values(warped, negative, votes, extent, taps, values, inside):
             images[:] = 0.0
             for i in range(n_events):
                 x, y, vote = warped[b, k, i, 0], warped[b, k, i, 1], votes[b, i]
-                corner[i, 0], corner[i, 1], fx, fy = _corner(x, y)
-                top, bottom = (_ONE - fy) * vote, fy * vote
-                weight[0, i], weight[1, i] = top * (_ONE - fx), top * fx
-                weight[2, i], weight[3, i] = bottom * (_ONE - fx), bottom * fx
+                corner[i, 0], corner[i, 1], fx, fy = bilinear_corner(x, y)
+                top, bottom = (ONE - fy) * vote, fy * vote
+                weight[0, i], weight[1, i] = top * (ONE - fx), top * fx
+                weight[2, i], weight[3, i] = bottom * (ONE - fx), bottom * fx
             # In the tensor code's order: every event's first tap, then every event's second, ...; taps
             # outside the image are dropped, padding events vote nothing.
             for tap in range(4):
@@ -86,7 +85,7 @@ def _polarity_values(warped, negative, votes, extent, taps, values, inside):
                     if votes[b, i] != 0 and col >= 0 and row >= 0 and col < width and row < height:
                         images[np.int64(negative[b, i]), row, col] += weight[tap, i]
             for sign in range(2):
-                _blur(images[sign], scratch, blurred[sign], taps)
+                blur(images[sign], scratch, blurred[sign], taps)
             for i in range(n_events):
                 inside[b, k, i], values[b, k, i] = _read(
                     blurred, np.int64(negative[b, i]), warped[b, k, i, 0], warped[b, k, i, 1]
@@ -99,17 +98,17 @@ def _read(images, sign, x, y):
     ``images[sign]``."""
     height, width = images.shape[1], images.shape[2]
     if not (x >= 0 and x <= width - 1 and y >= 0 and y <= height - 1):
-        return False, _ZERO
+        return False, ZERO
     # The clamps of ``sample_bilinear`` as comparisons: Numba's float ``min`` and ``max`` (the same
     # results, ties and signed zeros included) took most of this function's time.
-    col = _clamp(np.floor(x), _ZERO, np.float32(width - 2))
-    row = _clamp(np.floor(y), _ZERO, np.float32(height - 2))
-    fx = _clamp(x - col, _ZERO, _ONE)
-    fy = _clamp(y - row, _ZERO, _ONE)
+    col = _clamp(np.floor(x), ZERO, np.float32(width - 2))
+    row = _clamp(np.floor(y), ZERO, np.float32(height - 2))
+    fx = _clamp(x - col, ZERO, ONE)
+    fy = _clamp(y - row, ZERO, ONE)
     c, r = int(col), int(row)
-    top = images[sign, r, c] * (_ONE - fx) + images[sign, r, c + 1] * fx
-    bottom = images[sign, r + 1, c] * (_ONE - fx) + images[sign, r + 1, c + 1] * fx
-    return True, top * (_ONE - fy) + bottom * fy
+    top = images[sign, r, c] * (ONE - fx) + images[sign, r, c + 1] * fx
+    bottom = images[sign, r + 1, c] * (ONE - fx) + images[sign, r + 1, c + 1] * fx
+    return True, top * (ONE - fy) + bottom * fy
 
 
 @njit(cache=True)
@@ -148,8 +147,8 @@ def _overshoot(warped, real, last_col, last_row, out):
                 if real[b, k, i]:
                     x, y = warped[b, k, i, 0], warped[b, k, i, 1]
                     # torch.maximum's NaN propagation, as the tensor code's overshoot.
-                    beyond = _maximum(_maximum(-x, x - last_col), _maximum(-y, y - last_row))
-                    largest = _maximum(largest, beyond)
+                    beyond = maximum(maximum(-x, x - last_col), maximum(-y, y - last_row))
+                    largest = maximum(largest, beyond)
         out[b] = largest
 
 
@@ -239,8 +238,8 @@ def _costs(masked, counted, peak, cost):
             for k in range(n_models):
                 if counted[b, k, i]:
                     ratio = masked[b, k, i] / peak[b, i]
-                    if ratio > _ONE:
-                        ratio = _ONE
-                    cost[b, i, k] = _MAX_COST * (_ONE - ratio)
+                    if ratio > ONE:
+                        ratio = ONE
+                    cost[b, i, k] = _MAX_COST * (ONE - ratio)
                 else:
                     cost[b, i, k] = _MAX_COST

@@ -14,22 +14,19 @@ the splat's additions) differs by rounding: losses within about 2e-7, gradients 
 their largest component (tested, and measured in ``docs/speed.md``).
 
 Numba is an optional dependency (``pip install 'evseg-torch[fast]'``); this module is imported only
-when the backend is chosen (:func:`~evseg_torch.level_two.cmax.resolve_fit_backend`).
+when :mod:`evseg_torch.backend` chooses it.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 import torch
 from numba import njit
 from torch import Tensor
 
+from evseg_torch.kernels.common import ONE, ZERO, bilinear_corner, blur, blur_taps
 from evseg_torch.level_two.linear_warp import LinearWarp
 
-_ONE = np.float32(1.0)
-_ZERO = np.float32(0.0)
 _LANES = 8
 
 
@@ -82,17 +79,6 @@ def loss_and_grad(
     return torch.from_numpy(loss), torch.from_numpy(grad) if gradient else None
 
 
-def blur_taps(sigma: float) -> np.ndarray:
-    """The normalised Gaussian taps of :func:`~evseg_torch.level_two.iwe.gaussian_blur` (one tap of 1
-    for ``sigma`` 0), float32."""
-    if sigma == 0:
-        return np.ones(1, np.float32)
-    radius = math.ceil(3.0 * sigma)
-    taps = [math.exp(-0.5 * (d / sigma) ** 2) for d in range(-radius, radius + 1)]
-    total = math.fsum(taps)
-    return np.array([tap / total for tap in taps], np.float32)
-
-
 @njit(cache=True)
 def _loss_and_grad(xy, maps, params, weights, extent, taps, gamma, min_area, seed, loss, grad, gradient):
     n_params, rows, n_events, n_channels = maps.shape
@@ -111,7 +97,7 @@ def _loss_and_grad(xy, maps, params, weights, extent, taps, gamma, min_area, see
                 vote = max(_area(moved, i), min_area) ** gamma * vote
             votes[i] = vote
             _splat(image, xy[r, i, 0] - moved[i, 0], xy[r, i, 1] - moved[i, 1], vote)
-        _blur(image, scratch, blurred, taps)
+        blur(image, scratch, blurred, taps)
         # The variance over the extent; ``blurred`` becomes the deviations from the mean.
         count = height * width
         flat = blurred.ravel()
@@ -123,7 +109,7 @@ def _loss_and_grad(xy, maps, params, weights, extent, taps, gamma, min_area, see
             continue
         # d loss / d image = seed 2 (B - mean) / count, blurred back (the mean carries no gradient).
         flat *= np.float32(2.0) * seed[r] / np.float32(count)
-        _blur(blurred, scratch, image, taps)
+        blur(blurred, scratch, image, taps)
         for i in range(n_events):
             x, y = xy[r, i, 0] - moved[i, 0], xy[r, i, 1] - moved[i, 1]
             _pull_back(image, x, y, votes[i], gamma, min_area, moved, grad_moved, i)
@@ -158,7 +144,7 @@ def _pull_back(image, x, y, vote, gamma, min_area, moved, grad_moved, i):
     height, width = image.shape
     if not _touches(x, y, height, width):
         return
-    col, row, fx, fy = _corner(x, y)
+    col, row, fx, fy = bilinear_corner(x, y)
     g00 = _pixel(image, row, col)
     g01 = _pixel(image, row, col + 1)
     g10 = _pixel(image, row + 1, col)
@@ -171,11 +157,11 @@ def _pull_back(image, x, y, vote, gamma, min_area, moved, grad_moved, i):
     if gamma > 0:
         area = _area(moved, i)
         # d vote / d area = γ vote / area above the floor, 0 below it.
-        change = (top + fy * (bottom - top)) * gamma * vote / area if area >= min_area else _ZERO
-        grad_moved[i, 2] = change * (moved[i, 5] - _ONE)
+        change = (top + fy * (bottom - top)) * gamma * vote / area if area >= min_area else ZERO
+        grad_moved[i, 2] = change * (moved[i, 5] - ONE)
         grad_moved[i, 3] = -change * moved[i, 4]
         grad_moved[i, 4] = -change * moved[i, 3]
-        grad_moved[i, 5] = change * (moved[i, 2] - _ONE)
+        grad_moved[i, 5] = change * (moved[i, 2] - ONE)
 
 
 @njit(cache=True)
@@ -202,16 +188,7 @@ def _sum(a, b, product):
 @njit(cache=True)
 def _area(moved, i):
     """:func:`~evseg_torch.level_two.linear_warp.area_from` of event ``i``."""
-    return (_ONE - moved[i, 2]) * (_ONE - moved[i, 5]) - moved[i, 3] * moved[i, 4]
-
-
-@njit(cache=True)
-def _corner(x, y):
-    """The top-left bilinear tap ``(col, row)`` of ``(x, y)`` and the position's fractions ``(fx, fy)``
-    beyond it (float32, as the tensor code's ``xy - floor(xy)``). ``np.floor``, not ``math.floor``: the
-    same taps, and a quarter of the time in Numba (a float32 ``math.floor`` goes through Python's int)."""
-    col, row = int(np.floor(x)), int(np.floor(y))
-    return col, row, x - np.float32(col), y - np.float32(row)
+    return (ONE - moved[i, 2]) * (ONE - moved[i, 5]) - moved[i, 3] * moved[i, 4]
 
 
 @njit(cache=True)
@@ -223,7 +200,7 @@ def _touches(x, y, height, width):
 @njit(cache=True)
 def _pixel(image, row, col):
     if row < 0 or col < 0 or row >= image.shape[0] or col >= image.shape[1]:
-        return _ZERO
+        return ZERO
     return image[row, col]
 
 
@@ -233,8 +210,8 @@ def _splat(image, x, y, vote):
     height, width = image.shape
     if not _touches(x, y, height, width):
         return
-    col, row, fx, fy = _corner(x, y)
-    top, bottom, left = (_ONE - fy) * vote, fy * vote, _ONE - fx
+    col, row, fx, fy = bilinear_corner(x, y)
+    top, bottom, left = (ONE - fy) * vote, fy * vote, ONE - fx
     if row >= 0:
         if col >= 0:
             image[row, col] += top * left
@@ -245,29 +222,3 @@ def _splat(image, x, y, vote):
             image[row + 1, col] += bottom * left
         if col + 1 < width:
             image[row + 1, col + 1] += bottom * fx
-
-
-@njit(cache=True, fastmath={"contract"})
-def _blur(image, scratch, out, taps):
-    """Separable blur of ``image`` into ``out`` with zero padding, rows first (``scratch``: same shape).
-    Each pass runs along contiguous rows, which the compiler vectorises; fused multiply-adds, as torch's
-    ``add_(alpha=)``, give :func:`~evseg_torch.level_two.iwe.gaussian_blur`'s values bit for bit."""
-    height, width = image.shape
-    n_taps = len(taps)
-    radius = n_taps // 2
-    row = np.zeros(width + 2 * radius, np.float32)
-    for y in range(height):
-        for x in range(width):
-            row[radius + x] = image[y, x]
-            scratch[y, x] = 0.0
-        for k in range(n_taps):
-            tap = taps[k]
-            for x in range(width):
-                scratch[y, x] += tap * row[x + k]
-    for y in range(height):
-        for x in range(width):
-            out[y, x] = 0.0
-        for k in range(max(0, radius - y), min(n_taps, height - y + radius)):
-            tap, source = taps[k], y + k - radius
-            for x in range(width):
-                out[y, x] += tap * scratch[source, x]

@@ -1,13 +1,12 @@
-"""The compiled fit evaluation (``fit_backend: numba``) against the tensor code it stands in for."""
+"""The compiled fit evaluation (backend ``numba``) against the tensor code it stands in for."""
 
 import numpy as np
 import pytest
 import torch
 
-from evseg_torch.errors import ConfigError
+from evseg_torch.backend import using_backend
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two import cmax
-from evseg_torch.level_two.cmax import ContrastMaximization, resolve_fit_backend
+from evseg_torch.level_two.cmax import ContrastMaximization
 from evseg_torch.level_two.contrast import MIN_AREA, warped_contrast_loss_and_grad
 from evseg_torch.level_two.iwe import extent_mask
 from evseg_torch.level_two.linear_warp import LinearWarp
@@ -15,7 +14,7 @@ from evseg_torch.motion import Affine4, Rotation3D, Translation
 from tests.level_two._events import displacement_error
 from tests.level_two.test_contrast import DURATION, _scene
 
-fit_kernel = pytest.importorskip("evseg_torch.level_two.fit_kernel")
+fit_kernel = pytest.importorskip("evseg_torch.kernels.fit")
 
 CANVAS = (40, 56)
 
@@ -91,11 +90,12 @@ def test_corner_and_clamp_follow_python_semantics():
     # math.floor's taps and min(max(...))'s values, signed zeros and ties included.
     import math
 
-    from evseg_torch.level_two.data_term_kernel import _clamp
+    from evseg_torch.kernels.common import bilinear_corner
+    from evseg_torch.kernels.data_term import _clamp
 
     values = np.float32([-0.0, 0.0, -1.0, -0.5, -1e-8, 1e-8, 0.99999994, 3.0, 238.99998, 239.0, 1e6])
     for x in values:
-        col, row, fx, fy = fit_kernel._corner(x, -x)
+        col, row, fx, fy = bilinear_corner(x, -x)
         assert (col, row) == (math.floor(x), math.floor(-x))
         expected = np.float32(x) - np.float32(math.floor(x)), np.float32(-x) - np.float32(math.floor(-x))
         assert np.float32([fx, fy]).tobytes() == np.float32(expected).tobytes()
@@ -109,23 +109,18 @@ def test_fits_agree_across_backends(name):
     # the motion through either backend, and both land together.
     model, truth, events, start = _scene(name, dtype=torch.float32)
     start = torch.tensor(start, dtype=torch.float32)[None]
-    fitted = {
-        backend: ContrastMaximization(model, max_iter=30, fit_backend=backend)(events, start)[0]
-        for backend in ("numba", "torch")
-    }
+    fitted = {}
+    for backend in ("numba", "torch"):
+        with using_backend(backend):
+            fitted[backend] = ContrastMaximization(model, max_iter=30)(events, start)[0]
     for params in fitted.values():
         assert displacement_error(model, params, truth, events, DURATION) < 0.04
     assert displacement_error(model, fitted["numba"], fitted["torch"].numpy(), events, DURATION) < 0.005
 
 
-def test_backend_choice(monkeypatch):
-    assert resolve_fit_backend("torch") is None
-    assert resolve_fit_backend("numba") is fit_kernel.loss_and_grad
-    assert resolve_fit_backend("auto") is fit_kernel.loss_and_grad
-    with pytest.raises(ConfigError, match="fit_backend must be one of"):
-        resolve_fit_backend("cuda")
-
-    monkeypatch.setattr(cmax, "compiled_step", lambda name: None)  # as without Numba
-    assert resolve_fit_backend("auto") is None
-    with pytest.raises(ConfigError, match="needs the numba package"):
-        ContrastMaximization(Translation(CANVAS), fit_backend="numba")
+def test_only_float32_fits_on_the_cpu_take_the_kernel():
+    cmax = ContrastMaximization(Translation(CANVAS))
+    assert cmax._kernel_for(torch.zeros(1, 2)) is fit_kernel.loss_and_grad
+    assert cmax._kernel_for(torch.zeros(1, 2, dtype=torch.float64)) is None
+    with using_backend("torch"):
+        assert cmax._kernel_for(torch.zeros(1, 2)) is None
