@@ -26,7 +26,7 @@ from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.evaluation.labelled import load_labelled, score_labelling
 from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
 from evseg_torch.events import to_torch
-from evseg_torch.level_two.contrast import contrast_loss
+from evseg_torch.level_two.objectives.contrast import contrast_loss
 from evseg_torch.metrics import OUTCOMES
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.threads import set_threads

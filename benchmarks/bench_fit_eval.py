@@ -19,9 +19,9 @@ import torch
 
 from evseg_torch.events import EventBatch, to_torch
 from evseg_torch.kernels.fit import loss_and_grad
-from evseg_torch.level_two.contrast import MIN_AREA, warped_contrast_loss_and_grad
-from evseg_torch.level_two.iwe import extent_mask
-from evseg_torch.level_two.linear_warp import LinearWarp
+from evseg_torch.level_two.image.splat import extent_mask
+from evseg_torch.level_two.image.warp import LinearWarp
+from evseg_torch.level_two.objectives.contrast import MIN_AREA, warped_contrast_loss_and_grad
 from evseg_torch.synthetic import make_scene
 
 SIZE = (180, 240)

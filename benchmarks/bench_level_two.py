@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from evseg_torch.events import to_torch
-from evseg_torch.level_two.graph import event_graph, site_graph
-from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
+from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter
+from evseg_torch.level_two.energy.graph import event_graph, site_graph
 from evseg_torch.synthetic import make_scene
 from evseg_torch.threads import set_threads
 

@@ -10,7 +10,7 @@ Each section validates itself when it is built (``__post_init__``), from YAML, f
 (``_setting``'s bounds) and its choices; an integer given for a float field becomes a float. Unknown keys,
 in files or in keywords, and invalid values are :class:`~evseg_torch.errors.ConfigError` naming the key.
 The modules take their settings from these sections
-(:meth:`~evseg_torch.level_two.segmenter.GraphCutContrastSegmenter.from_config`), so a module's defaults
+(:meth:`~evseg_torch.level_two.descent.segmenter.GraphCutContrastSegmenter.from_config`), so a module's defaults
 are the config's.
 
 The configs shipped with the package (``default.yaml``, a full listing of these defaults, and the
@@ -223,7 +223,7 @@ class LevelOneConfig(_Section):
 class LevelTwoConfig(_Section):
     """EMSGC's spatio-temporal graph cut with contrast-maximisation refits (:mod:`evseg_torch.level_two`).
 
-    These are the settings of :class:`~evseg_torch.level_two.segmenter.GraphCutContrastSegmenter`
+    These are the settings of :class:`~evseg_torch.level_two.descent.segmenter.GraphCutContrastSegmenter`
     (its keywords, or ``from_config``), defined here only.
 
     Attributes:
@@ -249,22 +249,22 @@ class LevelTwoConfig(_Section):
             1.0 with 4000: probe detection 0.839 -> 0.894, `hard` 0.681 -> 0.694, own scenes 0.958 ->
             0.949, EED equal (``docs/objects.md``).
         objective: contrast objective of the refits, a key of
-            :data:`~evseg_torch.level_two.contrast.CONTRAST_OBJECTIVES` (EMSGC: ``variance``).
+            :data:`~evseg_torch.level_two.objectives.contrast.CONTRAST_OBJECTIVES` (EMSGC: ``variance``).
         collapse_weight: exponent γ of the refits' event-collapse guard
-            (:func:`~evseg_torch.level_two.contrast.contrast_loss`); 0 switches it off (EMSGC's plain
+            (:func:`~evseg_torch.level_two.objectives.contrast.contrast_loss`); 0 switches it off (EMSGC's plain
             objective).
-        optimizer: ``lbfgs`` (batched L-BFGS of :mod:`~evseg_torch.level_two.solver`) or ``adam``.
+        optimizer: ``lbfgs`` (batched L-BFGS of :mod:`~evseg_torch.level_two.solver.optimizers`) or ``adam``.
         max_iter: optimiser iterations of the first refit, which starts from the initial pool.
         warm_max_iter: iterations of each later refit, which starts from the previous refit's models
             (``None``: ``max_iter``).
         lr: learning rate (Adam) or initial step (L-BFGS) of the refits, in pixels of displacement;
             ``None`` (default) for the optimiser's own default, 1 for L-BFGS and 0.1 for Adam
-            (:class:`~evseg_torch.level_two.cmax.ContrastMaximization`).
+            (:class:`~evseg_torch.level_two.solver.cmax.ContrastMaximization`).
         temporal_edges: also join consecutive events at the same pixel in the graph (EMSGC: no).
         data_normalization: ``relative`` (each event's image value divided by its best over the pool,
             floored at a quantile of the pool's values) or ``global`` (EMSGC: divided by the global
             maximum). Relative separates layers far better on our scenes; see
-            :mod:`evseg_torch.level_two.data_term`.
+            :mod:`evseg_torch.level_two.energy.data_term`.
         data_floor_quantile: in ``relative`` normalisation, the quantile, in (0, 1], of the best values
             of the events whose best model is an event's own that floors its best value, so that each
             layer's events are scaled by that layer's own sharpness (``null``: no such floor).
@@ -280,7 +280,7 @@ class LevelTwoConfig(_Section):
             (EMSGC: 0).
         site_time_slices: graph-cut sites are the events of one pixel within one of this many time slices
             of the window (``None``: every event is a site, as in EMSGC); 1 cuts the graph 2-4x smaller
-            (:func:`~evseg_torch.level_two.graph.site_graph`).
+            (:func:`~evseg_torch.level_two.energy.graph.site_graph`).
         label_cost_events: the label cost scales with dense windows: a window of N events pays
             ``lambda_label * max(1, N / label_cost_events)`` per label (``None``: ``lambda_label`` whatever
             the window, as in EMSGC). The data cost a spurious model saves grows with the events it
@@ -290,7 +290,7 @@ class LevelTwoConfig(_Section):
             unions of touching clusters, each fitted by contrast maximisation; the energy decides); 0
             switches discovery off: the paper's level two, which only prunes. A round after the first
             proposes only around the clusters the round before created. See
-            :mod:`evseg_torch.level_two.segmenter` and :mod:`evseg_torch.level_two.discovery`.
+            :mod:`evseg_torch.level_two.descent.segmenter` and :mod:`evseg_torch.level_two.discovery`.
         carried_discovery_rounds: the pipeline's discovery rounds, at most ``discovery_rounds``, in a window
             that carries models in (a stream's windows after its first, or given ``initial_models``): they
             start from objects that the windows before split and joined already, and there a second round
@@ -317,7 +317,7 @@ class LevelTwoConfig(_Section):
         soft_temperature: temperature of the per-event soft assignments, a softmax of the negative data
             cost (units of the cost, 0-255; a cost difference of one temperature between two clusters
             is a factor ``e`` between their probabilities); 20 is calibrated on synthetic scenes (see
-            :data:`~evseg_torch.level_two.segmenter.DEFAULT_SOFT_TEMPERATURE`).
+            :data:`~evseg_torch.level_two.descent.segmenter.DEFAULT_SOFT_TEMPERATURE`).
     """
 
     where: ClassVar[str] = "level_two."
@@ -330,16 +330,16 @@ class LevelTwoConfig(_Section):
     sigma: float = _setting(1.0, at_least=0)
     data_sigma: float = _setting(0.65, at_least=0)
     objective: str = _setting(
-        "variance", choices=_Names("evseg_torch.level_two.contrast", "CONTRAST_OBJECTIVES")
+        "variance", choices=_Names("evseg_torch.level_two.objectives.contrast", "CONTRAST_OBJECTIVES")
     )
     collapse_weight: float = _setting(0.375, at_least=0)
-    optimizer: str = _setting("lbfgs", choices=_Names("evseg_torch.level_two.cmax", "OPTIMIZERS"))
+    optimizer: str = _setting("lbfgs", choices=_Names("evseg_torch.level_two.solver.cmax", "OPTIMIZERS"))
     max_iter: int = _setting(6, at_least=1)
     warm_max_iter: int | None = _setting(3, at_least=1)
     lr: float | None = _setting(None, above=0)
     temporal_edges: bool = False
     data_normalization: str = _setting(
-        "relative", choices=_Names("evseg_torch.level_two.data_term", "NORMALIZATIONS")
+        "relative", choices=_Names("evseg_torch.level_two.energy.data_term", "NORMALIZATIONS")
     )
     data_floor_quantile: float | None = _setting(0.9, above=0, at_most=1)
     data_pool_floor_quantile: float | None = _setting(0.75, above=0, at_most=1)

@@ -3,7 +3,7 @@
 This is the one place where events are counted on the pixel grid (nearest pixel, not differentiable);
 level one's raw event images, the figures and the evaluation protocols' compensated count images are
 all built on :func:`event_counts`. The differentiable, bilinear image of warped events used by level two
-is :func:`evseg_torch.level_two.iwe.splat_events`, a different thing.
+is :func:`evseg_torch.level_two.image.splat.splat_events`, a different thing.
 """
 
 from __future__ import annotations

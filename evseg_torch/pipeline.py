@@ -23,8 +23,8 @@ from evseg_torch.errors import ConfigError, EventFormatError, ModelError
 from evseg_torch.events import EventBatch, as_events, check_sensor_size, iter_windows, to_torch
 from evseg_torch.level_one.features import Correspondences, extract_correspondences
 from evseg_torch.level_one.progressive_x import ProgressiveXResult, progressive_x
-from evseg_torch.level_two.iwe import warp_events
-from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
+from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter
+from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import MotionModel, make_motion_model
 from evseg_torch.tracking import (
     ObjectTracker,
@@ -199,7 +199,7 @@ class CascadedSegmenter(nn.Module):
         """Segment several windows, with one batched level two for all of them.
 
         Level one runs window by window (NumPy, CPU); level two labels and refits every window in one
-        batched call (:class:`~evseg_torch.level_two.segmenter.GraphCutContrastSegmenter`). Each window's
+        batched call (:class:`~evseg_torch.level_two.descent.segmenter.GraphCutContrastSegmenter`). Each window's
         result equals what :meth:`forward` gives for it alone.
 
         Args:

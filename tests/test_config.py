@@ -24,8 +24,8 @@ from evseg_torch.errors import ConfigError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_one.features import extract_correspondences
 from evseg_torch.level_one.progressive_x import progressive_x
-from evseg_torch.level_two.cmax import ContrastMaximization
-from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
+from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter
+from evseg_torch.level_two.solver.cmax import ContrastMaximization
 from evseg_torch.pipeline import CascadedSegmenter
 
 

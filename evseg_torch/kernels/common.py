@@ -9,14 +9,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from evseg_torch.level_two.iwe import gaussian_taps
+from evseg_torch.level_two.image.blur import gaussian_taps
 
 ONE = np.float32(1.0)
 ZERO = np.float32(0.0)
 
 
 def blur_taps(sigma: float) -> np.ndarray:
-    """The taps of :func:`~evseg_torch.level_two.iwe.gaussian_blur` at ``sigma`` (one tap of 1 for
+    """The taps of :func:`~evseg_torch.level_two.image.blur.gaussian_blur` at ``sigma`` (one tap of 1 for
     ``sigma`` 0), float32."""
     return np.array(gaussian_taps(sigma), np.float32)
 
@@ -34,7 +34,7 @@ def bilinear_corner(x, y):
 def blur(image, scratch, out, taps):
     """Separable blur of ``image`` into ``out`` with zero padding, rows first (``scratch``: same shape).
     Each pass runs along contiguous rows, which the compiler vectorises; fused multiply-adds, as torch's
-    ``add_(alpha=)``, give :func:`~evseg_torch.level_two.iwe.gaussian_blur`'s values bit for bit."""
+    ``add_(alpha=)``, give :func:`~evseg_torch.level_two.image.blur.gaussian_blur`'s values bit for bit."""
     height, width = image.shape
     n_taps = len(taps)
     radius = n_taps // 2

@@ -1,6 +1,6 @@
 """The data term's per-polarity images and reads as one compiled pass per model (Numba).
 
-:func:`~evseg_torch.level_two.data_term.data_cost` with per-polarity images splats every event of a
+:func:`~evseg_torch.level_two.energy.data_term.data_cost` with per-polarity images splats every event of a
 window under every model of its pool into two images, blurs them and reads each event back from its
 own sign's image: a dozen tensor passes over ``B * K * N`` positions and ``2 B K`` canvases.
 :func:`polarity_values` does the same per model in one compiled loop whose arithmetic follows the
@@ -41,7 +41,7 @@ def polarity_values(
 
     Returns:
         ``(values, inside)``, float32 and bool :math:`(B, K, N)`, as
-        :func:`~evseg_torch.level_two.data_term.sample_bilinear` reads the tensor code's images (0 outside).
+        :func:`~evseg_torch.level_two.energy.data_term.sample_bilinear` reads the tensor code's images (0 outside).
     """
     n_windows, n_models, n_events = warped.shape[:3]
     values = np.empty((n_windows, n_models, n_events), np.float32)
@@ -94,7 +94,7 @@ def _polarity_values(warped, negative, votes, extent, taps, values, inside):
 
 @njit(cache=True)
 def _read(images, sign, x, y):
-    """``(inside, value)`` of :func:`~evseg_torch.level_two.data_term.sample_bilinear` at ``(x, y)`` in
+    """``(inside, value)`` of :func:`~evseg_torch.level_two.energy.data_term.sample_bilinear` at ``(x, y)`` in
     ``images[sign]``."""
     height, width = images.shape[1], images.shape[2]
     if not (x >= 0 and x <= width - 1 and y >= 0 and y <= height - 1):
@@ -128,7 +128,7 @@ def overshoots(warped: Tensor, real: Tensor, height: int, width: int) -> np.ndar
 
     Returns:
         float32 :math:`(B,)`: ``-inf`` where no position counts, NaN where one is NaN (as
-        :func:`~evseg_torch.level_two.data_term._overshoots`).
+        :func:`~evseg_torch.level_two.energy.data_term._overshoots`).
     """
     n_windows, n_models = warped.shape[:2]
     overshoot = np.empty(n_windows, np.float32)
@@ -159,7 +159,7 @@ def relative_costs(
     floor_quantile: float | None,
     pool_floor_quantile: float | None,
 ) -> Tensor:
-    """The "relative" costs of :func:`~evseg_torch.level_two.data_term.data_cost` from its images' values.
+    """The "relative" costs of :func:`~evseg_torch.level_two.energy.data_term.data_cost` from its images' values.
 
     Two compiled passes (each event's best value and owner; the costs) around NumPy's selections of the
     floors, the tensor code's steps in its order.

@@ -1,6 +1,6 @@
 r"""The fits' evaluation as one compiled loop per cluster on the CPU (Numba): the ``numba`` fit backend.
 
-:func:`~evseg_torch.level_two.contrast.warped_contrast_loss_and_grad` evaluates a cluster's contrast
+:func:`~evseg_torch.level_two.objectives.contrast.warped_contrast_loss_and_grad` evaluates a cluster's contrast
 loss and its gradient in a few dozen tensor operations; on the small crops of discovery and the refits
 (a few hundred to a few thousand events, 50 x 30 to 240 x 180 pixels) their calls, not their arithmetic,
 take the time (about 0.7 ms per evaluation, ``docs/speed.md``). :func:`loss_and_grad` computes the
@@ -25,7 +25,7 @@ from numba import njit
 from torch import Tensor
 
 from evseg_torch.kernels.common import ONE, ZERO, bilinear_corner, blur, blur_taps
-from evseg_torch.level_two.linear_warp import LinearWarp
+from evseg_torch.level_two.image.warp import LinearWarp
 
 _LANES = 8
 
@@ -50,7 +50,7 @@ def loss_and_grad(
         extent: int64 ``(height, width)`` of each cluster's image, :math:`(R, 2)`; positions are
             relative to its top-left pixel.
         sigma: Gaussian blur in pixels (a kernel of ``ceil(3 sigma)`` taps each side, as
-            :func:`~evseg_torch.level_two.iwe.gaussian_blur`).
+            :func:`~evseg_torch.level_two.image.blur.gaussian_blur`).
         collapse_weight: exponent γ of the event-collapse votes ``max(area, min_area) ** γ``; 0: none.
         min_area: the area element's floor.
         seed: :math:`(R,)`, the derivative of the loss in the variance.
@@ -187,7 +187,7 @@ def _sum(a, b, product):
 
 @njit(cache=True)
 def _area(moved, i):
-    """:func:`~evseg_torch.level_two.linear_warp.area_from` of event ``i``."""
+    """:func:`~evseg_torch.level_two.image.warp.area_from` of event ``i``."""
     return (ONE - moved[i, 2]) * (ONE - moved[i, 5]) - moved[i, 3] * moved[i, 4]
 
 

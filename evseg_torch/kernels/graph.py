@@ -1,6 +1,6 @@
 """The site graph's edge weights as one compiled pass over the pixel pairs (Numba).
 
-:func:`~evseg_torch.level_two.graph.site_graph` weighs an edge between two adjacent pixels ``p`` and
+:func:`~evseg_torch.level_two.energy.graph.site_graph` weighs an edge between two adjacent pixels ``p`` and
 ``q`` (one time slice) by the number of distinct event pairs that EMSGC's lookups join: every event's
 latest event at or before it and earliest after it at the other pixel. The tensor-free NumPy code finds
 them with one ``searchsorted`` per event and neighbour (about six per event) and then counts them;
@@ -23,7 +23,7 @@ from numba import njit
 
 
 def pair_counts(pixel: np.ndarray, t: np.ndarray, pixel_pairs: np.ndarray) -> np.ndarray:
-    """The number of event pairs that the lookups of :func:`~evseg_torch.level_two.graph.event_graph`
+    """The number of event pairs that the lookups of :func:`~evseg_torch.level_two.energy.graph.event_graph`
     join across each pair of adjacent pixels.
 
     Args:

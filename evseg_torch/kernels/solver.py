@@ -1,6 +1,6 @@
 """The batched L-BFGS's bookkeeping as compiled loops over its rows (Numba).
 
-:func:`~evseg_torch.level_two.solver.lbfgs` keeps every problem's state in rows of NumPy arrays and
+:func:`~evseg_torch.level_two.solver.optimizers.lbfgs` keeps every problem's state in rows of NumPy arrays and
 updates them with about a hundred array operations per round; on a few dozen numbers each, their calls
 take the time (about 0.2 ms per round, 3.8 ms of an EED window's level two). :func:`lbfgs` runs the same
 rounds with the bookkeeping between two evaluations as one compiled call: each row's line search,
@@ -18,13 +18,13 @@ import numpy as np
 from numba import njit
 
 from evseg_torch.kernels.common import maximum
-from evseg_torch.level_two import solver
+from evseg_torch.level_two.solver.optimizers import optimizers as solver
 
 _OPTIONS = {"cache": True, "error_model": "numpy"}  # IEEE results of x / 0, as NumPy's
 
 
 def lbfgs(evaluate, x: np.ndarray, max_iter: int, lr: float, tol: float) -> np.ndarray:
-    """:func:`~evseg_torch.level_two.solver._lbfgs`: the same arguments, the same result."""
+    """:func:`~evseg_torch.level_two.solver.optimizers._lbfgs`: the same arguments, the same result."""
     dtype = x.dtype.type
     constants = np.array(
         [

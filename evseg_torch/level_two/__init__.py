@@ -1,7 +1,15 @@
 """Level two (torch): images of warped events, contrast maximisation and graph-cut event clustering."""
 
-from evseg_torch.level_two.cmax import ContrastMaximization
-from evseg_torch.level_two.contrast import (
+from evseg_torch.level_two.descent.segmenter import (
+    DEFAULT_SOFT_TEMPERATURE,
+    GraphCutContrastSegmenter,
+    LevelTwoResult,
+)
+from evseg_torch.level_two.energy.data_term import DataCost, data_cost, sample_bilinear
+from evseg_torch.level_two.energy.graph import event_graph, pixel_adjacency, site_graph
+from evseg_torch.level_two.image.splat import ImageOfWarpedEvents, splat_events, warped_iwe
+from evseg_torch.level_two.image.warp import warp_events
+from evseg_torch.level_two.objectives.contrast import (
     CONTRAST_OBJECTIVES,
     ContrastLoss,
     contrast_loss,
@@ -9,15 +17,8 @@ from evseg_torch.level_two.contrast import (
     normalized_variance,
     padded_contrast_loss,
 )
-from evseg_torch.level_two.data_term import DataCost, data_cost, sample_bilinear
-from evseg_torch.level_two.graph import event_graph, pixel_adjacency, site_graph
-from evseg_torch.level_two.iwe import ImageOfWarpedEvents, splat_events, warp_events, warped_iwe
-from evseg_torch.level_two.multi_model_loss import MultiModelContrastLoss, multi_model_contrast_loss
-from evseg_torch.level_two.segmenter import (
-    DEFAULT_SOFT_TEMPERATURE,
-    GraphCutContrastSegmenter,
-    LevelTwoResult,
-)
+from evseg_torch.level_two.objectives.multi_model import MultiModelContrastLoss, multi_model_contrast_loss
+from evseg_torch.level_two.solver.cmax import ContrastMaximization
 
 __all__ = [
     "CONTRAST_OBJECTIVES",

@@ -51,10 +51,10 @@ from torch import Tensor, nn
 
 from evseg_torch.config import LevelTwoConfig
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.cmax import ContrastMaximization
-from evseg_torch.level_two.contrast import warp_area_element
-from evseg_torch.level_two.crops import gather_members
-from evseg_torch.level_two.window_state import Step, WindowState, subsample
+from evseg_torch.level_two.descent.state import Step, WindowState, subsample
+from evseg_torch.level_two.objectives.contrast import warp_area_element
+from evseg_torch.level_two.solver.cmax import ContrastMaximization
+from evseg_torch.level_two.solver.crops import gather_members
 from evseg_torch.motion import MotionModel
 
 __all__ = ["Discovery", "bisect", "candidate_regions", "centroid_velocity", "recentred", "translation_params"]
@@ -174,7 +174,7 @@ def centroid_velocity(events: EventBatch, weights: Tensor) -> Tensor:
     Args:
         events: ``xy`` :math:`(N, 2)` and ``t`` :math:`(N,)` shared by every set, or each set's own
             (padded) events ``xy`` :math:`(R, N, 2)`, ``t`` :math:`(R, N)` (see
-            :func:`~evseg_torch.level_two.crops.gather_members`).
+            :func:`~evseg_torch.level_two.solver.crops.gather_members`).
         weights: non-negative :math:`(R, N)`, one row per set.
 
     Returns:

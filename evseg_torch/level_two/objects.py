@@ -14,7 +14,7 @@ happens to fit them. Two additions make each non-background cluster one spatiall
   most events: large, densely textured objects can outnumber a sparse background; and any other cluster
   whose events spread over the view: :func:`spans_view`) has no support
   term. The term applies in level two's *object phase*, the labellings after its descent has settled
-  (:mod:`~evseg_torch.level_two.segmenter`; from the first labelling, supports built on poor early
+  (:mod:`~evseg_torch.level_two.descent.segmenter`; from the first labelling, supports built on poor early
   labels kept their mistakes, see ``docs/objects.md``). A label's support is rebuilt before each of
   those labellings from the current labels and refitted models; a model proposed by discovery has its
   region as its first support.
@@ -43,8 +43,8 @@ import numpy as np
 import torch
 
 from evseg_torch.config import LevelTwoConfig
-from evseg_torch.level_two.iwe import warp_events
-from evseg_torch.level_two.window_state import Step, WindowState, site_majority
+from evseg_torch.level_two.descent.state import Step, WindowState, site_majority
+from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import MotionModel
 
 __all__ = [

@@ -185,7 +185,7 @@ class TestRetainedLabels:
             problems.append((unary, edges, kwargs))
             return alpha_expansion(unary, edges, **kwargs)
 
-        segmenter_module = importlib.import_module("evseg_torch.level_two.segmenter")
+        segmenter_module = importlib.import_module("evseg_torch.level_two.descent.segmenter")
         monkeypatch.setattr(segmenter_module, "alpha_expansion", record)
         CascadedSegmenter((90, 120))(make_scene((90, 120), n_objects=2, rng=3).events)
         assert problems

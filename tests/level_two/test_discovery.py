@@ -3,7 +3,6 @@ import pytest
 import torch
 
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.crops import gather_members
 from evseg_torch.level_two.discovery import (
     bisect,
     candidate_regions,
@@ -11,6 +10,7 @@ from evseg_torch.level_two.discovery import (
     recentred,
     translation_params,
 )
+from evseg_torch.level_two.solver.crops import gather_members
 from evseg_torch.motion import Affine4, Rotation3D, Translation
 
 SIZE = (40, 60)  # (H, W)

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from evseg_torch.events import to_torch
+from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter
 from evseg_torch.level_two.objects import (
     cluster_groups,
     coverage,
@@ -14,7 +15,6 @@ from evseg_torch.level_two.objects import (
     support_cost,
     support_mask,
 )
-from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
 from evseg_torch.synthetic import make_scene
 
 SIZE = (180, 240)

@@ -12,7 +12,7 @@ weighting cluster ``k``'s image by its probability :math:`p_{nk}` of belonging t
     \qquad \bar p_k = \frac{1}{N} \sum_n p_{nk},
 
 with the contrast :math:`c` and the event-collapse guard's area weights :math:`a^{\gamma}` of
-:func:`~evseg_torch.level_two.contrast.contrast_loss` (which computes each cluster's term).
+:func:`~evseg_torch.level_two.objectives.contrast.contrast_loss` (which computes each cluster's term).
 
 **Degenerate assignments.** The contrast term alone does not keep every cluster in use: from a poor
 start, gradient steps on the assignments can hand every event to the cluster whose image is sharpest
@@ -37,7 +37,11 @@ from torch import Tensor, nn
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
-from evseg_torch.level_two.contrast import DEFAULT_COLLAPSE_WEIGHT, check_objective, padded_contrast_loss
+from evseg_torch.level_two.objectives.contrast import (
+    DEFAULT_COLLAPSE_WEIGHT,
+    check_objective,
+    padded_contrast_loss,
+)
 from evseg_torch.motion import MotionModel
 
 __all__ = ["ASSIGNMENT_TOLERANCE", "MultiModelContrastLoss", "multi_model_contrast_loss"]
@@ -78,7 +82,7 @@ def multi_model_contrast_loss(
             :data:`ASSIGNMENT_TOLERANCE`); padding entries are ignored.
         params: each cluster's motion, :math:`(K, P)` or :math:`(B, K, P)`, in the model's units.
         sensor_size: ``(H, W)``; defaults to ``model.sensor_size``.
-        objective: a key of :data:`~evseg_torch.level_two.contrast.CONTRAST_OBJECTIVES`.
+        objective: a key of :data:`~evseg_torch.level_two.objectives.contrast.CONTRAST_OBJECTIVES`.
         sigma: Gaussian blur of the IWEs in pixels.
         collapse_weight: exponent γ of the event-collapse guard; 0 switches it off.
         balance_weight: weight β of the term against degenerate assignments; 0 switches it off.
@@ -88,7 +92,7 @@ def multi_model_contrast_loss(
         :math:`(B,)` with ``"none"`` for a batch, else a scalar; differentiable with respect to
         ``assignments`` and ``params`` (and ``events.xy``). With ``"normalized_variance"`` a cluster
         whose assignments are all 0 has an empty reference image and gives NaN, as in
-        :func:`~evseg_torch.level_two.contrast.contrast_loss` (softmax outputs are never exactly 0).
+        :func:`~evseg_torch.level_two.objectives.contrast.contrast_loss` (softmax outputs are never exactly 0).
 
     Raises:
         ConfigError: for an unknown objective or reduction, or a negative ``collapse_weight`` or
@@ -141,7 +145,7 @@ class MultiModelContrastLoss(nn.Module):
     Args:
         model: the motion model.
         sensor_size: ``(H, W)``; defaults to ``model.sensor_size``.
-        objective: a key of :data:`~evseg_torch.level_two.contrast.CONTRAST_OBJECTIVES`.
+        objective: a key of :data:`~evseg_torch.level_two.objectives.contrast.CONTRAST_OBJECTIVES`.
         sigma: Gaussian blur of the IWEs in pixels.
         collapse_weight: exponent γ of the event-collapse guard; 0 switches it off.
         balance_weight: weight β of the term against degenerate assignments; 0 switches it off.

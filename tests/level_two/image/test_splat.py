@@ -4,14 +4,9 @@ import torch
 
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.iwe import (
-    ImageOfWarpedEvents,
-    extent_mask,
-    gaussian_blur,
-    splat_events,
-    warp_events,
-    warped_iwe,
-)
+from evseg_torch.level_two.image.blur import gaussian_blur
+from evseg_torch.level_two.image.splat import ImageOfWarpedEvents, extent_mask, splat_events, warped_iwe
+from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import Affine4, Rotation3D, Translation
 
 MODELS = [Translation((8, 8)), Affine4((8, 8)), Rotation3D((8, 8))]

@@ -163,7 +163,7 @@ def site_graph(
     site's label then has the same Potts energy on both graphs, and summing the events' data costs
     per site gives the same data energy, so a graph cut on the sites minimises the event graph's
     energy over such labellings (level two's deviation from EMSGC, see
-    :mod:`~evseg_torch.level_two.segmenter`). The event edges are counted per site pair with one
+    :mod:`~evseg_torch.level_two.descent.segmenter`). The event edges are counted per site pair with one
     ``bincount``, never listed or sorted, and sites are numbered through a dense (pixel, slice) table.
 
     Args:

@@ -3,8 +3,8 @@ r"""The variance of blurred images of warped events, with one hand-written backw
 Contrast maximisation evaluates ``var(blur(splat(x')))`` and its gradient hundreds of times per window,
 mostly on small crops, where autograd's bookkeeping of the forty-odd nodes of that composition costs
 more than its arithmetic (1.1 of 1.7 ms for 1400 events in a 116 x 53 crop). :func:`iwe_variance`
-computes the same as :func:`~evseg_torch.level_two.iwe.splat_events` followed by
-:func:`~evseg_torch.level_two.contrast.image_variance`, from the same helpers (tested against them,
+computes the same as :func:`~evseg_torch.level_two.image.splat.splat_events` followed by
+:func:`~evseg_torch.level_two.objectives.contrast.image_variance`, from the same helpers (tested against them,
 values and gradients), as one autograd node. Its backward pass is three steps: the gradient image
 ``2 (B - mean) / |Ω|`` of the blurred image ``B``; the same blur of it (the blur is symmetric, so its
 own adjoint); and a read of that image at each event's four bilinear taps, which gives the gradient of
@@ -20,8 +20,9 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from evseg_torch.errors import ShapeError
-from evseg_torch.level_two.iwe import bilinear_taps, extent_mask, gaussian_blur, read_flat, scatter_taps
-from evseg_torch.level_two.linear_warp import sum_ignoring_padding
+from evseg_torch.level_two.image.blur import gaussian_blur
+from evseg_torch.level_two.image.splat import bilinear_taps, extent_mask, read_flat, scatter_taps
+from evseg_torch.level_two.image.warp import sum_ignoring_padding
 
 
 def iwe_variance(
@@ -35,7 +36,7 @@ def iwe_variance(
         size: the canvas ``(H, W)``.
         sigma: Gaussian blur in pixels (0: none).
         extent: optional int64 ``(height, width)`` of each image in the canvas, :math:`(R, 2)`
-            (see :func:`~evseg_torch.level_two.iwe.splat_events`); the variance is then over those
+            (see :func:`~evseg_torch.level_two.image.splat.splat_events`); the variance is then over those
             pixels, by sums that the canvas beyond them does not change.
 
     Returns:
@@ -52,7 +53,7 @@ def iwe_variance(
 def centred_variance(image: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | int]:
     r"""Variance of each image over its pixels, with the deviations from its mean and the pixel count.
 
-    The one computation behind :func:`~evseg_torch.level_two.contrast.image_variance` and
+    The one computation behind :func:`~evseg_torch.level_two.objectives.contrast.image_variance` and
     :func:`iwe_variance`. With ``mask`` :math:`(..., H, W)`, broadcastable (the pixels of each image in
     a larger canvas), the sums are ones that the zeros beyond an image's pixels do not change, so an
     image has the same variance and gradient, bit for bit, alone and in any larger canvas; the mean is
@@ -83,12 +84,12 @@ def iwe_variance_and_pullback(
 ) -> tuple[Tensor, Callable[[Tensor], tuple[Tensor, Tensor]]]:
     """:func:`iwe_variance` without autograd: the variances and the map of their gradient back to the
     events, for callers that chain the gradient by hand (the fits' evaluations,
-    :func:`~evseg_torch.level_two.contrast.warped_contrast_loss_and_grad`).
+    :func:`~evseg_torch.level_two.objectives.contrast.warped_contrast_loss_and_grad`).
 
     Args:
         xy, weights, size, sigma: as in :func:`iwe_variance`.
         mask: optional bool :math:`(R, H, W)`, each image's pixels of the canvas: the
-            :func:`~evseg_torch.level_two.iwe.extent_mask` of :func:`iwe_variance`'s ``extent``.
+            :func:`~evseg_torch.level_two.image.splat.extent_mask` of :func:`iwe_variance`'s ``extent``.
 
     Returns:
         ``(variance, pullback)``: the variances :math:`(R,)`, and a function of the gradient

@@ -3,7 +3,7 @@ r"""EMSGC's data term: how well each motion model compensates each event.
 For every model :math:`l` of a pool (EMSGC ``computeDataTermLookUpTables_GMM_undistortion``):
 
 1. warp **all** events of the window with :math:`\theta_l` and build the IWE :math:`I_l` (bilinear
-   voting, Gaussian blur :math:`\sigma = 1`, see :func:`~evseg_torch.level_two.iwe.splat_events`;
+   voting, Gaussian blur :math:`\sigma = 1`, see :func:`~evseg_torch.level_two.image.splat.splat_events`;
    level two's ``data_sigma`` is 0.65, a deviation measured in ``docs/objects.md``);
 2. normalise **jointly**: :math:`M = \max_{l, x} I_l(x)`, the largest value over all models' IWEs;
 3. take the negative image :math:`N_l = 255 (1 - I_l / M)`, which is 0 at the sharpest pixel of the pool;
@@ -84,7 +84,8 @@ from torch import Tensor, nn
 from evseg_torch.backend import kernel
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one
-from evseg_torch.level_two.iwe import extent_mask, read_flat, splat_events, warp_events
+from evseg_torch.level_two.image.splat import extent_mask, read_flat, splat_events
+from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import MotionModel
 
 __all__ = ["DataCost", "data_cost", "sample_bilinear"]
@@ -113,7 +114,7 @@ def sample_bilinear(
             row ``k`` of ``xy`` reads image ``k`` (then ``M`` must equal ``K``).
         extent: optional int64 ``(height, width)`` of the image each position reads, broadcast against
             ``xy``, e.g. :math:`(K, 1, 2)`: images of different sizes in the top-left corners of one
-            canvas (see :func:`~evseg_torch.level_two.iwe.splat_events`); a position is read as if its
+            canvas (see :func:`~evseg_torch.level_two.image.splat.splat_events`); a position is read as if its
             image were only that large.
 
     Returns:

@@ -1,10 +1,10 @@
 """Contrast maximisation (CMax) of every cluster's motion: :class:`ContrastMaximization`.
 
-Each cluster's parameters minimise its own contrast loss (:mod:`~evseg_torch.level_two.contrast`) on
-its own gathered events, in a crop around it where it is small (:mod:`~evseg_torch.level_two.crops`),
-through the warp's linear map (:mod:`~evseg_torch.level_two.linear_warp`); all clusters of all windows
-of a call are one batched problem of the solvers of :mod:`~evseg_torch.level_two.solver`. Each
-evaluation is tensor code (:func:`~evseg_torch.level_two.contrast.warped_contrast_loss_and_grad`) or, for
+Each cluster's parameters minimise its own contrast loss (:mod:`~evseg_torch.level_two.objectives.contrast`) on
+its own gathered events, in a crop around it where it is small (:mod:`~evseg_torch.level_two.solver.crops`),
+through the warp's linear map (:mod:`~evseg_torch.level_two.image.warp`); all clusters of all windows
+of a call are one batched problem of the solvers of :mod:`~evseg_torch.level_two.solver.optimizers`. Each
+evaluation is tensor code (:func:`~evseg_torch.level_two.objectives.contrast.warped_contrast_loss_and_grad`) or, for
 float32 fits on the CPU, one compiled loop per cluster (:mod:`~evseg_torch.kernels.fit`, as
 :mod:`evseg_torch.backend` chooses).
 """
@@ -22,7 +22,9 @@ from evseg_torch.backend import kernel
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one
 from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
-from evseg_torch.level_two.contrast import (
+from evseg_torch.level_two.image.splat import extent_mask, splat_events
+from evseg_torch.level_two.image.warp import LinearWarp
+from evseg_torch.level_two.objectives.contrast import (
     DEFAULT_COLLAPSE_WEIGHT,
     MIN_AREA,
     REFERENCE_OBJECTIVES,
@@ -31,21 +33,20 @@ from evseg_torch.level_two.contrast import (
     image_variance,
     warped_contrast_loss_and_grad,
 )
-from evseg_torch.level_two.crops import fit_crops, gather_members
-from evseg_torch.level_two.iwe import extent_mask, splat_events
-from evseg_torch.level_two.linear_warp import LinearWarp
-from evseg_torch.level_two.solver import adam, lbfgs
+from evseg_torch.level_two.solver.crops import fit_crops, gather_members
+from evseg_torch.level_two.solver.optimizers import adam, lbfgs
 from evseg_torch.motion import MotionModel
 
 OPTIMIZERS = ("lbfgs", "adam")
 """The refits' optimisers (:class:`ContrastMaximization`)."""
+
 
 class ContrastMaximization(nn.Module):
     r"""Refine the motion parameters of K clusters at once by contrast maximisation.
 
     Each cluster's parameters maximise the contrast of the image of its own (weighted) events, as in
     EMSGC's model refit, but with exact gradients (chained by hand through the loss,
-    :func:`~evseg_torch.level_two.contrast.warped_contrast_loss_and_grad`). For conditioning, the
+    :func:`~evseg_torch.level_two.objectives.contrast.warped_contrast_loss_and_grad`). For conditioning, the
     optimiser works in pixels of displacement over the window (parameters times
     ``model.displacement_scale(duration)``), and each cluster's loss is divided by its magnitude at the
     start, so that every cluster weighs alike. With ``weights``, each cluster's events of non-zero weight
@@ -56,7 +57,7 @@ class ContrastMaximization(nn.Module):
 
     Every cluster is a problem of its own, as in EMSGC's refit of all models: its parameters minimise its
     own normalised loss. All clusters of all windows of a call are solved together by the batched
-    solvers of :mod:`~evseg_torch.level_two.solver`, each row following its own path (its own line
+    solvers of :mod:`~evseg_torch.level_two.solver.optimizers`, each row following its own path (its own line
     search and stopping), while each evaluation is one batched pass over the clusters still running.
     Clusters in crops and on the whole sensor are evaluated apart (a *fit* is a window's clusters in
     images of one size). A window's result equals its result alone, bit for bit on the CPU.
@@ -69,7 +70,7 @@ class ContrastMaximization(nn.Module):
         model: the motion model.
         sensor_size: ``(H, W)``; defaults to ``model.sensor_size``.
         objective: a key of :data:`CONTRAST_OBJECTIVES`.
-        optimizer: ``"lbfgs"`` (L-BFGS, :func:`~evseg_torch.level_two.solver.lbfgs`) or ``"adam"``.
+        optimizer: ``"lbfgs"`` (L-BFGS, :func:`~evseg_torch.level_two.solver.optimizers.lbfgs`) or ``"adam"``.
         max_iter: L-BFGS iterations, or Adam steps.
         lr: step size in conditioned units (pixels); ``None`` means 1 for L-BFGS, 0.1 for Adam.
         sigma: Gaussian blur of the IWEs in pixels (EMSGC: 1).
@@ -183,7 +184,7 @@ class ContrastMaximization(nn.Module):
             weights: :math:`(K, n)`.
 
         Returns:
-            :math:`(K,)`, as :func:`~evseg_torch.level_two.contrast.contrast_loss` up to rounding.
+            :math:`(K,)`, as :func:`~evseg_torch.level_two.objectives.contrast.contrast_loss` up to rounding.
         """
         kernel = None if self.objective in REFERENCE_OBJECTIVES else self._kernel_for(events.xy)
         if kernel is None:

@@ -6,13 +6,12 @@ import torch
 
 from evseg_torch.backend import using_backend
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.cmax import ContrastMaximization
-from evseg_torch.level_two.contrast import MIN_AREA, warped_contrast_loss_and_grad
-from evseg_torch.level_two.iwe import extent_mask
-from evseg_torch.level_two.linear_warp import LinearWarp
+from evseg_torch.level_two.image.splat import extent_mask
+from evseg_torch.level_two.image.warp import LinearWarp
+from evseg_torch.level_two.objectives.contrast import MIN_AREA, warped_contrast_loss_and_grad
+from evseg_torch.level_two.solver.cmax import ContrastMaximization
 from evseg_torch.motion import Affine4, Rotation3D, Translation
-from tests.level_two._events import displacement_error
-from tests.level_two.test_contrast import DURATION, _scene
+from tests.helpers.level_two import DURATION, displacement_error, edge_scene
 
 fit_kernel = pytest.importorskip("evseg_torch.kernels.fit")
 
@@ -107,7 +106,7 @@ def test_corner_and_clamp_follow_python_semantics():
 def test_fits_agree_across_backends(name):
     # A float32 fit (the pipeline's dtype, the only one the compiled loop serves) from 30% off lands on
     # the motion through either backend, and both land together.
-    model, truth, events, start = _scene(name, dtype=torch.float32)
+    model, truth, events, start = edge_scene(name, dtype=torch.float32)
     start = torch.tensor(start, dtype=torch.float32)[None]
     fitted = {}
     for backend in ("numba", "torch"):

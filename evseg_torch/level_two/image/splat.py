@@ -38,48 +38,9 @@ from torch import Tensor, nn
 from evseg_torch.errors import ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.checks import check_blur, check_points, check_sensor_size
+from evseg_torch.level_two.image.blur import BLUR_TRUNCATE, gaussian_blur
+from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import MotionModel
-
-BLUR_TRUNCATE = 3.0
-"""The blur kernel reaches ``ceil(BLUR_TRUNCATE * sigma)`` pixels each side."""
-
-
-def warp_events(model: MotionModel, xy: Tensor, t: Tensor, params: Tensor) -> Tensor:
-    r"""Warp events to the reference time with one or several motions: ``x' = x - t v(x; params)``.
-
-    This is :meth:`MotionModel.warp` with broadcasting: ``xy`` may be shared by all models or hold each
-    model's own (padded) events. It uses the models' linear-velocity protocol ``v(x) = J(x) params``.
-
-    Args:
-        model: the motion model.
-        xy: event positions :math:`(..., N, 2)`.
-        t: event times in seconds relative to the reference time, :math:`(..., N)`.
-        params: model parameters :math:`(..., P)`; leading dimensions broadcast against those of ``xy``.
-
-    Returns:
-        Warped positions, :math:`(..., N, 2)` with the broadcast leading dimensions.
-
-    Raises:
-        ShapeError: if the shapes do not fit together.
-
-    Examples:
-        >>> from evseg_torch.motion import Translation
-        >>> warp_events(Translation((8, 8)), torch.rand(20, 2), torch.rand(20), torch.rand(3, 2)).shape
-        torch.Size([3, 20, 2])
-    """
-    check_points(xy, "xy")
-    if t.shape != xy.shape[:-1]:
-        raise ShapeError(f"t must have shape {tuple(xy.shape[:-1])} to match xy, got {tuple(t.shape)}")
-    if params.ndim == 0 or params.shape[-1] != model.n_params:
-        raise ShapeError(
-            f"params must be (..., {model.n_params}) for the {model.name} model, got {tuple(params.shape)}"
-        )
-    jacobian = model.jacobian(xy)
-    # A sum over the few parameters: broadcast matmul runs one tiny product per event and model.
-    velocity = jacobian[..., 0] * params[..., None, 0, None]
-    for index in range(1, model.n_params):
-        velocity = torch.addcmul(velocity, jacobian[..., index], params[..., None, index, None])
-    return xy - t[..., None] * velocity
 
 
 def splat_events(
@@ -195,85 +156,6 @@ def extent_mask(extent: Tensor, size: tuple[int, int]) -> Tensor:
     rows = torch.arange(height, device=extent.device) < extent[..., 0, None, None]
     cols = torch.arange(width, device=extent.device) < extent[..., 1, None, None]
     return rows.transpose(-1, -2) & cols
-
-
-def gaussian_taps(sigma: float, truncate: float = BLUR_TRUNCATE) -> tuple[float, ...]:
-    """The taps of :func:`gaussian_blur`: ``exp(-d^2 / (2 sigma^2))`` for ``|d| <= ceil(truncate * sigma)``,
-    normalised to sum 1; one tap of 1 for ``sigma`` 0. The tensor code and the compiled kernels
-    (:mod:`evseg_torch.kernels`) blur with these taps.
-
-    Examples:
-        >>> [round(tap, 3) for tap in gaussian_taps(0.5)]
-        [0.0, 0.106, 0.787, 0.106, 0.0]
-    """
-    if sigma == 0:
-        return (1.0,)
-    radius = math.ceil(truncate * sigma)
-    taps = [math.exp(-0.5 * (d / sigma) ** 2) for d in range(-radius, radius + 1)]
-    total = math.fsum(taps)
-    return tuple(tap / total for tap in taps)
-
-
-def gaussian_blur(image: Tensor, sigma: float, truncate: float = BLUR_TRUNCATE) -> Tensor:
-    r"""Separable Gaussian blur of the last two dimensions with zero padding.
-
-    The kernel is ``exp(-d^2 / (2 sigma^2))`` for ``|d| <= ceil(truncate * sigma)``, normalised to
-    sum 1 (as OpenCV's ``GaussianBlur`` and kornia's ``gaussian_blur2d``).
-
-    Args:
-        image: :math:`(..., H, W)`.
-        sigma: standard deviation in pixels; 0 returns ``image`` itself.
-        truncate: kernel radius in units of ``sigma``.
-
-    Returns:
-        :math:`(..., H, W)`.
-
-    Examples:
-        >>> gaussian_blur(torch.rand(2, 8, 8), 1.0).shape
-        torch.Size([2, 8, 8])
-    """
-    check_blur(sigma, truncate)
-    if sigma == 0:
-        return image
-    taps = gaussian_taps(sigma, truncate)
-    if torch.is_grad_enabled() and image.requires_grad:
-        return _SymmetricBlur.apply(image, taps)
-    # Without a gradient to keep, the sums alone: the fits' evaluations blur twice each, mostly small
-    # crops, where an autograd.Function's call cost a tenth of the blur.
-    return _shifted_sums(image, taps)
-
-
-class _SymmetricBlur(torch.autograd.Function):
-    """Separable blur with a symmetric kernel and zero padding: a symmetric linear map, so its backward
-    pass is the same blur. Autograd through the shifted sums would instead copy every shifted gradient
-    into a padded buffer, which made the backward pass 5x slower than the forward."""
-
-    @staticmethod
-    def forward(ctx, image: Tensor, taps: tuple[float, ...]) -> Tensor:
-        ctx.taps = taps
-        return _shifted_sums(image, taps)
-
-    @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
-        return _SymmetricBlur.apply(grad, ctx.taps), None
-
-
-def _shifted_sums(image: Tensor, taps: tuple[float, ...]) -> Tensor:
-    # Sums of shifted copies: on CPU, conv1d/conv2d with one channel (and kornia's gaussian_blur2d, which
-    # uses them) are slower, and their backward passes about 10x slower. The copies are views of one
-    # padded image, all taken by one unfold (the same sums as one narrow per tap, in fewer calls).
-    radius = len(taps) // 2
-    for dim in (-1, -2):
-        size = image.shape[dim]
-        padded = nn.functional.pad(image, (radius, radius) if dim == -1 else (0, 0, radius, radius))
-        shifted = padded.unfold(dim, size, 1)  # the shifts' dimension next to last, then the window
-        shifted = shifted.unbind(-2) if dim == -1 else shifted.transpose(-1, -2).unbind(-3)
-        blurred = taps[0] * shifted[0]
-        for view, tap in zip(shifted[1:], taps[1:], strict=True):
-            # In place: allocating a new image per tap made the blur about twice as slow.
-            blurred.add_(view, alpha=tap)
-        image = blurred
-    return image
 
 
 def warped_iwe(

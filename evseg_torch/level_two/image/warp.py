@@ -173,3 +173,41 @@ def sum_ignoring_padding(values: Tensor) -> Tensor:
     blocks = nn.functional.pad(values, (0, -length % _SUM_BLOCK)).unflatten(-1, (-1, _SUM_BLOCK)).sum(dim=-1)
     # One block (images up to 256 pixels wide or high): its sum is the total, no cumsum needed.
     return blocks[..., 0] if blocks.shape[-1] == 1 else blocks.cumsum(dim=-1)[..., -1]
+
+
+def warp_events(model: MotionModel, xy: Tensor, t: Tensor, params: Tensor) -> Tensor:
+    r"""Warp events to the reference time with one or several motions: ``x' = x - t v(x; params)``.
+
+    This is :meth:`MotionModel.warp` with broadcasting: ``xy`` may be shared by all models or hold each
+    model's own (padded) events. It uses the models' linear-velocity protocol ``v(x) = J(x) params``.
+
+    Args:
+        model: the motion model.
+        xy: event positions :math:`(..., N, 2)`.
+        t: event times in seconds relative to the reference time, :math:`(..., N)`.
+        params: model parameters :math:`(..., P)`; leading dimensions broadcast against those of ``xy``.
+
+    Returns:
+        Warped positions, :math:`(..., N, 2)` with the broadcast leading dimensions.
+
+    Raises:
+        ShapeError: if the shapes do not fit together.
+
+    Examples:
+        >>> from evseg_torch.motion import Translation
+        >>> warp_events(Translation((8, 8)), torch.rand(20, 2), torch.rand(20), torch.rand(3, 2)).shape
+        torch.Size([3, 20, 2])
+    """
+    check_points(xy, "xy")
+    if t.shape != xy.shape[:-1]:
+        raise ShapeError(f"t must have shape {tuple(xy.shape[:-1])} to match xy, got {tuple(t.shape)}")
+    if params.ndim == 0 or params.shape[-1] != model.n_params:
+        raise ShapeError(
+            f"params must be (..., {model.n_params}) for the {model.name} model, got {tuple(params.shape)}"
+        )
+    jacobian = model.jacobian(xy)
+    # A sum over the few parameters: broadcast matmul runs one tiny product per event and model.
+    velocity = jacobian[..., 0] * params[..., None, 0, None]
+    for index in range(1, model.n_params):
+        velocity = torch.addcmul(velocity, jacobian[..., index], params[..., None, index, None])
+    return xy - t[..., None] * velocity

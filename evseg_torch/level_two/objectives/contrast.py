@@ -37,9 +37,9 @@ from evseg_torch.config import LevelTwoConfig
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.checks import check_image, check_padded_batch, check_sensor_size
-from evseg_torch.level_two.iwe import splat_events
-from evseg_torch.level_two.iwe_variance import centred_variance, iwe_variance, iwe_variance_and_pullback
-from evseg_torch.level_two.linear_warp import LinearWarp, area_from, area_gradient
+from evseg_torch.level_two.image.splat import splat_events
+from evseg_torch.level_two.image.variance import centred_variance, iwe_variance, iwe_variance_and_pullback
+from evseg_torch.level_two.image.warp import LinearWarp, area_from, area_gradient
 from evseg_torch.motion import MotionModel
 
 DEFAULT_COLLAPSE_WEIGHT = LevelTwoConfig.collapse_weight
@@ -59,7 +59,7 @@ def image_variance(iwe: Tensor, reference: Tensor | None = None, mask: Tensor | 
         reference: unused; accepted so that every objective in :data:`CONTRAST_OBJECTIVES` is called alike.
         mask: optional bool :math:`(..., H, W)`, broadcastable: :math:`\Omega`, the pixels of each image
             (images of different sizes in one canvas, see
-            :func:`~evseg_torch.level_two.iwe.extent_mask`); ``None`` for all.
+            :func:`~evseg_torch.level_two.image.splat.extent_mask`); ``None`` for all.
 
     Returns:
         :math:`(...)`.
@@ -175,7 +175,7 @@ def warp_area_element(model: MotionModel, events: EventBatch, params: Tensor) ->
 
     The Jacobian of the warp is taken by forward differences of one pixel, exact for velocity fields
     that are affine in ``x`` and accurate to O(t |d²v/dx²|) otherwise. Like
-    :func:`~evseg_torch.level_two.iwe.warp_events`, it relies on the models' ``v(x) = J(x) params``.
+    :func:`~evseg_torch.level_two.image.warp.warp_events`, it relies on the models' ``v(x) = J(x) params``.
 
     Args:
         model: the motion model.
@@ -208,7 +208,7 @@ def warped_contrast_loss(
     """Negative contrasts :math:`(...)` of warped events, ``objective`` a key of
     :data:`CONTRAST_OBJECTIVES` (``reference_variance`` :math:`(...)`, the variance of the reference
     images, for those that need one); with ``extent`` :math:`(..., 2)`, each cluster's image is only its
-    extent of the ``sensor_size`` canvas (see :func:`~evseg_torch.level_two.iwe.splat_events`)."""
+    extent of the ``sensor_size`` canvas (see :func:`~evseg_torch.level_two.image.splat.splat_events`)."""
     moved = warp.moved(params)
     if collapse_weight > 0:
         votes = area_from(moved).clamp_min(MIN_AREA) ** collapse_weight
@@ -241,8 +241,8 @@ def warped_contrast_loss_and_grad(
 ) -> tuple[Tensor, Tensor]:
     r""":func:`warped_contrast_loss` of R clusters and its gradient in their parameters, without autograd.
 
-    The fits' evaluations (:mod:`~evseg_torch.level_two.cmax`): the same loss, its gradient chained by
-    hand through the variance (:func:`~evseg_torch.level_two.iwe_variance.iwe_variance_and_pullback`),
+    The fits' evaluations (:mod:`~evseg_torch.level_two.solver.cmax`): the same loss, its gradient chained by
+    hand through the variance (:func:`~evseg_torch.level_two.image.variance.iwe_variance_and_pullback`),
     the area-element votes and the linear warp, in a few dozen tensor operations and none of autograd's
     bookkeeping (tested against autograd of :func:`warped_contrast_loss`).
 
@@ -253,7 +253,7 @@ def warped_contrast_loss_and_grad(
         sensor_size, objective, sigma, collapse_weight, reference_variance: as in
             :func:`warped_contrast_loss`, for R clusters.
         mask: optional bool :math:`(R, H, W)`, each cluster's pixels of the ``sensor_size`` canvas (the
-            :func:`~evseg_torch.level_two.iwe.extent_mask` of ``warped_contrast_loss``'s ``extent``,
+            :func:`~evseg_torch.level_two.image.splat.extent_mask` of ``warped_contrast_loss``'s ``extent``,
             built once by a caller that evaluates the same clusters many times).
         divisor: optional :math:`(R,)`; the losses are divided by it (each fit's normalisation).
 

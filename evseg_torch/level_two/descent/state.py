@@ -1,7 +1,7 @@
 """One window's state in level two's block-coordinate descent, and the helpers that batch windows.
 
 :class:`WindowState` (started by :func:`start_window`) is what the segmenter
-(:mod:`~evseg_torch.level_two.segmenter`), discovery (:mod:`~evseg_torch.level_two.discovery`) and the
+(:mod:`~evseg_torch.level_two.descent.segmenter`), discovery (:mod:`~evseg_torch.level_two.discovery`) and the
 object phase (:mod:`~evseg_torch.level_two.objects`) step, round by round; :class:`StageClock` times the
 stages; the functions below renumber labels, build memberships and pad the windows of a batch into shared
 tensors.
@@ -22,7 +22,7 @@ from evseg_torch.config import LevelTwoConfig
 from evseg_torch.events import EventBatch
 from evseg_torch.graphcut.alpha_expansion import PottsGraph, potts_graph
 from evseg_torch.level_two.checks import check_labels, check_params
-from evseg_torch.level_two.graph import event_graph, site_graph
+from evseg_torch.level_two.energy.graph import event_graph, site_graph
 from evseg_torch.motion import MotionModel
 
 
@@ -104,7 +104,7 @@ def start_window(
     config: LevelTwoConfig,
     discovery_rounds: int,
 ) -> WindowState:
-    """A window's graph (:mod:`~evseg_torch.level_two.graph`) and starting point, its inputs checked."""
+    """A window's graph (:mod:`~evseg_torch.level_two.energy.graph`) and starting point, its inputs checked."""
     params = check_params(init_params, events, model)
     labels = None if init_labels is None else check_labels(init_labels, events, params).cpu().numpy()
     if config.site_time_slices is None:

@@ -7,7 +7,7 @@ import torch
 from evseg_torch.backend import using_backend
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EVENT_DTYPE, EventBatch
-from evseg_torch.level_two.graph import event_graph, pixel_adjacency, site_graph
+from evseg_torch.level_two.energy.graph import event_graph, pixel_adjacency, site_graph
 
 
 def _random_events(count, size=(40, 50), seed=0):

@@ -2,9 +2,9 @@ import pytest
 import torch
 
 from evseg_torch.errors import ShapeError
-from evseg_torch.level_two.contrast import image_variance
-from evseg_torch.level_two.iwe import extent_mask, splat_events
-from evseg_torch.level_two.iwe_variance import iwe_variance
+from evseg_torch.level_two.image.splat import extent_mask, splat_events
+from evseg_torch.level_two.image.variance import iwe_variance
+from evseg_torch.level_two.objectives.contrast import image_variance
 
 SIZE = (12, 17)
 

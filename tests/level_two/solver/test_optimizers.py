@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from evseg_torch.backend import using_backend
-from evseg_torch.level_two.solver import adam, lbfgs
+from evseg_torch.level_two.solver.optimizers import adam, lbfgs
 
 SOLVERS = {"lbfgs": lbfgs, "adam": adam}
 

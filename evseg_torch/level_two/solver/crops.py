@@ -12,7 +12,7 @@ from torch import Tensor
 
 from evseg_torch.errors import ShapeError
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.linear_warp import LinearWarp
+from evseg_torch.level_two.image.warp import LinearWarp
 
 # Pixels a fit's crop reaches beyond its events' raw and initially warped positions: room for the
 # warps of a fit to move (refits move models by a pixel or two) and for the blur.

@@ -4,8 +4,9 @@ import torch
 
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_windows
-from evseg_torch.level_two.cmax import ContrastMaximization
-from evseg_torch.level_two.contrast import (
+from evseg_torch.level_two.image.splat import extent_mask, splat_events
+from evseg_torch.level_two.image.warp import LinearWarp, sum_ignoring_padding
+from evseg_torch.level_two.objectives.contrast import (
     CONTRAST_OBJECTIVES,
     ContrastLoss,
     contrast_loss,
@@ -16,20 +17,19 @@ from evseg_torch.level_two.contrast import (
     warped_contrast_loss,
     warped_contrast_loss_and_grad,
 )
-from evseg_torch.level_two.crops import fit_crops, gather_members
-from evseg_torch.level_two.iwe import extent_mask, splat_events
-from evseg_torch.level_two.linear_warp import LinearWarp, sum_ignoring_padding
+from evseg_torch.level_two.solver.cmax import ContrastMaximization
+from evseg_torch.level_two.solver.crops import fit_crops, gather_members
 from evseg_torch.motion import Affine4, Rotation3D, Translation
-from tests.level_two._events import displacement_error, edge_points, moving_events
+from tests.helpers.level_two import (
+    DURATION,
+    SIZE,
+    TRUTH,
+    displacement_error,
+    edge_points,
+    edge_scene,
+    moving_events,
+)
 
-SIZE = (96, 128)
-DURATION = 0.03
-# Displacements over the window of about 20 px: 2% is 0.4 px.
-TRUTH = {
-    "translation": (Translation(SIZE), [600.0, -400.0]),
-    "affine4": (Affine4(SIZE), [600.0, -400.0, 2.0, 3.0]),
-    "rotation3d": (Rotation3D(SIZE), [1.5, -2.5, 6.0]),
-}
 SMALL = [Translation((8, 8)), Affine4((8, 8)), Rotation3D((8, 8))]
 
 
@@ -43,17 +43,6 @@ def _small_events(n=20, seed=0):
 def _concatenated(windows):
     """The events of several single windows as one window (a batch's ``lengths`` is no event field)."""
     return EventBatch(*(torch.cat([getattr(w, name) for w in windows]) for name in ("xy", "t", "p")))
-
-
-def _scene(name, seed=0, integer=True, n_points=6000, n_segments=20, dtype=torch.float64, device="cpu"):
-    model, truth = TRUTH[name]
-    rng = np.random.default_rng(seed)
-    points = edge_points(SIZE, n_points, rng, n_segments=n_segments)
-    events = moving_events(
-        model, truth, points, DURATION, rng, noise=0.2, integer=integer, dtype=dtype, device=device
-    )
-    start = np.asarray(truth) * (1 + 0.3 * rng.choice([-1.0, 1.0], size=len(truth)))
-    return model, np.asarray(truth), events, start
 
 
 class TestObjectives:
@@ -160,7 +149,7 @@ class TestContrastLoss:
             torch.testing.assert_close(loss[k], contrast_loss(model, own, params[k : k + 1])[0])
 
     def test_true_motion_is_sharpest(self):
-        model, truth, events, start = _scene("affine4")
+        model, truth, events, start = edge_scene("affine4")
         loss = contrast_loss(model, events, torch.tensor(np.stack([truth, start, np.zeros(4)])))
         assert loss[0] < loss[1] and loss[0] < loss[2]
 
@@ -254,7 +243,7 @@ class TestCollapseGuard:
 
     def test_guard_prevents_collapse(self):
         # Dense texture: plain variance prefers packing events into less area.
-        model, truth, events, _ = _scene("affine4", n_points=8000, n_segments=40, integer=False)
+        model, truth, events, _ = edge_scene("affine4", n_points=8000, n_segments=40, integer=False)
         start = torch.tensor(truth)[None]
         true_area = warp_area_element(model, events, start).mean()
         plain = ContrastMaximization(model, collapse_weight=0.0, max_iter=30)(events, start)
@@ -268,7 +257,7 @@ class TestCollapseGuard:
 class TestContrastMaximization:
     @pytest.mark.parametrize("name", sorted(TRUTH))
     def test_recovers_motion(self, name, device, dtype):
-        model, truth, events, start = _scene(name, dtype=dtype, device=device)
+        model, truth, events, start = edge_scene(name, dtype=dtype, device=device)
         cmax = ContrastMaximization(model, max_iter=30)
         fitted = cmax(events, torch.tensor(start, dtype=dtype, device=device)[None])
         assert fitted.shape == (1, model.n_params) and fitted.dtype == dtype
@@ -280,12 +269,12 @@ class TestContrastMaximization:
     )
     def test_recovers_motion_subpixel_events(self, name, bound):
         # Off-pixel events expose the pixel grid's pull on bilinear voting, hence affine4's wider bound.
-        model, truth, events, start = _scene(name, integer=False)
+        model, truth, events, start = edge_scene(name, integer=False)
         fitted = ContrastMaximization(model, max_iter=30)(events, torch.tensor(start)[None])
         assert displacement_error(model, fitted[0], truth, events, DURATION) < bound
 
     def test_adam(self):
-        model, truth, events, start = _scene("translation")
+        model, truth, events, start = edge_scene("translation")
         cmax = ContrastMaximization(model, optimizer="adam", max_iter=150, lr=0.2)
         fitted = cmax(events, torch.tensor(start)[None])
         assert displacement_error(model, fitted[0], truth, events, DURATION) < 0.02
@@ -313,7 +302,7 @@ class TestContrastMaximization:
             assert displacement_error(model, fitted[k], truths[k], own, DURATION) < 0.04
 
     def test_loss_decreases(self):
-        model, _, events, start = _scene("rotation3d")
+        model, _, events, start = edge_scene("rotation3d")
         start = torch.tensor(start)[None]
         fitted = ContrastMaximization(model, max_iter=5)(events, start)
         assert contrast_loss(model, events, fitted) < contrast_loss(model, events, start)

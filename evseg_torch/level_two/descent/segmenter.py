@@ -8,20 +8,20 @@ the IROS 2021 paper's level two) is
     E(L, \Theta) = \lambda_D \sum_k D_k(l_k; \Theta) + \lambda_P \sum_{(k, j)} w_{kj} [l_k \ne l_j]
     + \lambda_M \, |\{l_k\}|,
 
-with the data term of :mod:`~evseg_torch.level_two.data_term`, the spatio-temporal graph of
-:mod:`~evseg_torch.level_two.graph` and a label cost :math:`\lambda_M` per model in use (scaled with
+with the data term of :mod:`~evseg_torch.level_two.energy.data_term`, the spatio-temporal graph of
+:mod:`~evseg_torch.level_two.energy.graph` and a label cost :math:`\lambda_M` per model in use (scaled with
 dense windows, ``label_cost_events``). It is minimised by block-coordinate descent, for at most
 ``n_iter_segmentation`` rounds: data costs of every event under every model; labelling by α-expansion
 from the current labels; empty models dropped and the rest renumbered by size, largest first; a stop
 when the labels settle; otherwise each cluster's model refitted by contrast maximisation of its own
-events (:mod:`~evseg_torch.level_two.cmax`).
+events (:mod:`~evseg_torch.level_two.solver.cmax`).
 
 Beyond the paper, once the labels settle: **discovery** (:mod:`~evseg_torch.level_two.discovery`)
 proposes models for regions that may move otherwise, and the next labelling decides with the same
 energy; then the **object phase** (:mod:`~evseg_torch.level_two.objects`) makes each non-background
 cluster one object. ``discovery_rounds=0`` and ``objects=False`` give the paper's level two.
 
-Each window's state is a :class:`~evseg_torch.level_two.window_state.WindowState`; a list or a padded
+Each window's state is a :class:`~evseg_torch.level_two.descent.state.WindowState`; a list or a padded
 batch of windows is segmented in lockstep, one batched data term and one batched fit per round for all
 windows still running, and each window's result equals its result alone (bit for bit on the CPU with
 one thread). The deviations from EMSGC, the energies, devices and batches in detail, with their
@@ -44,13 +44,7 @@ from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one, batch_windows
 from evseg_torch.graphcut.alpha_expansion import alpha_expansion
 from evseg_torch.level_two.checks import check_events, check_labels
-from evseg_torch.level_two.cmax import ContrastMaximization
-from evseg_torch.level_two.contrast import contrast_loss
-from evseg_torch.level_two.data_term import DataCost
-from evseg_torch.level_two.discovery import Discovery
-from evseg_torch.level_two.iwe import splat_events, warp_events
-from evseg_torch.level_two.objects import ObjectPhase
-from evseg_torch.level_two.window_state import (
+from evseg_torch.level_two.descent.state import (
     StageClock,
     Step,
     WindowState,
@@ -64,6 +58,13 @@ from evseg_torch.level_two.window_state import (
     start_window,
     subsample,
 )
+from evseg_torch.level_two.discovery import Discovery
+from evseg_torch.level_two.energy.data_term import DataCost
+from evseg_torch.level_two.image.splat import splat_events
+from evseg_torch.level_two.image.warp import warp_events
+from evseg_torch.level_two.objectives.contrast import contrast_loss
+from evseg_torch.level_two.objects import ObjectPhase
+from evseg_torch.level_two.solver.cmax import ContrastMaximization
 from evseg_torch.motion import MotionModel, make_motion_model
 
 __all__ = ["DEFAULT_SOFT_TEMPERATURE", "GraphCutContrastSegmenter", "LevelTwoResult"]
@@ -281,7 +282,7 @@ class GraphCutContrastSegmenter(nn.Module):
     def contrast_loss(self, events: EventBatch, params: Tensor, labels: Tensor | None = None) -> Tensor:
         r"""Differentiable negative contrast of each cluster's own events under its model.
 
-        This is the refits' objective (:func:`~evseg_torch.level_two.contrast.contrast_loss` with this
+        This is the refits' objective (:func:`~evseg_torch.level_two.objectives.contrast.contrast_loss` with this
         segmenter's objective, blur and collapse guard), for training a network that predicts motion
         parameters.
 

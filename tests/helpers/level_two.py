@@ -11,7 +11,16 @@ import numpy as np
 import torch
 
 from evseg_torch.events import EventBatch
-from evseg_torch.motion import MotionModel
+from evseg_torch.motion import Affine4, MotionModel, Rotation3D, Translation
+
+SIZE = (96, 128)
+DURATION = 0.03
+# Displacements over the window of about 20 px: 2% is 0.4 px.
+TRUTH = {
+    "translation": (Translation(SIZE), [600.0, -400.0]),
+    "affine4": (Affine4(SIZE), [600.0, -400.0, 2.0, 3.0]),
+    "rotation3d": (Rotation3D(SIZE), [1.5, -2.5, 6.0]),
+}
 
 
 def edge_points(
@@ -72,3 +81,16 @@ def displacement_error(model: MotionModel, params, truth, events: EventBatch, du
     truth = np.asarray(truth, dtype=np.float64)
     error = np.linalg.norm(model.velocity(xy, params) - model.velocity(xy, truth), axis=-1).max()
     return float(error / np.linalg.norm(model.velocity(xy, truth), axis=-1).max())
+
+
+def edge_scene(name, seed=0, integer=True, n_points=6000, n_segments=20, dtype=torch.float64, device="cpu"):
+    """Events of edges under the motion ``TRUTH[name]`` and a start 30% off each parameter:
+    ``(model, truth, events, start)``."""
+    model, truth = TRUTH[name]
+    rng = np.random.default_rng(seed)
+    points = edge_points(SIZE, n_points, rng, n_segments=n_segments)
+    events = moving_events(
+        model, truth, points, DURATION, rng, noise=0.2, integer=integer, dtype=dtype, device=device
+    )
+    start = np.asarray(truth) * (1 + 0.3 * rng.choice([-1.0, 1.0], size=len(truth)))
+    return model, np.asarray(truth), events, start

@@ -4,7 +4,8 @@ import torch
 from evseg_torch.backend import using_backend
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_windows, to_torch
-from evseg_torch.level_two.data_term import (
+from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter
+from evseg_torch.level_two.energy.data_term import (
     NORMALIZATIONS,
     DataCost,
     _margins,
@@ -14,8 +15,8 @@ from evseg_torch.level_two.data_term import (
     data_cost,
     sample_bilinear,
 )
-from evseg_torch.level_two.iwe import splat_events, warp_events
-from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter
+from evseg_torch.level_two.image.splat import splat_events
+from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import Affine4, Translation
 
 
