@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+import importlib.util
 import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -81,16 +82,19 @@ def kernel(name: str) -> Callable | None:
 
 @functools.cache
 def _compiled(name: str) -> Callable | None:
-    module, function = name.rsplit(".", 1)
-    try:
-        return getattr(importlib.import_module(f"evseg_torch.kernels.{module}"), function)
-    except ImportError:
+    if not _numba_installed():
         return None
+    module, function = name.rsplit(".", 1)
+    return getattr(importlib.import_module(f"evseg_torch.kernels.{module}"), function)
+
+
+def _numba_installed() -> bool:
+    return importlib.util.find_spec("numba") is not None
 
 
 def _checked(name: str, what: str) -> str:
     if name not in BACKENDS:
         raise ConfigError(f"{what} must be one of {', '.join(BACKENDS)}, got {name!r}")
-    if name == "numba" and _compiled("common.blur") is None:
+    if name == "numba" and not _numba_installed():
         raise ConfigError(f"{what} 'numba' needs the numba package: pip install 'evseg-torch[fast]'")
     return name

@@ -1,8 +1,10 @@
 """The one setting that chooses the compiled kernels (evseg_torch.backend)."""
 
 import os
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -33,7 +35,7 @@ def test_unknown_settings_are_refused(name):
 
 
 def test_numba_without_the_package_is_refused(monkeypatch):
-    monkeypatch.setattr(backend, "_compiled", lambda name: None)
+    monkeypatch.setattr(backend, "_numba_installed", lambda: False)
     with pytest.raises(ConfigError, match="needs the numba package"):
         set_backend("numba")
 
@@ -54,3 +56,16 @@ def test_the_environment_sets_the_start(value, expected):
         check=True,
     )
     assert expected in out.stdout
+
+
+def test_every_kernel_the_package_asks_for_exists():
+    # A kernel that failed to import would leave its step to the tensor code without a word.
+    pytest.importorskip("numba")
+    root = Path(backend.__file__).parent
+    names = {
+        name for path in root.rglob("*.py") for name in re.findall(r'kernel\("([\w.]+)"\)', path.read_text())
+    }
+    assert len(names) >= 7
+    with using_backend("numba"):
+        for name in names:
+            assert callable(kernel(name)), name

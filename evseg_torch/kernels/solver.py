@@ -1,15 +1,14 @@
 """The batched L-BFGS's bookkeeping as compiled loops over its rows (Numba).
 
-:func:`~evseg_torch.level_two.solver.optimizers.lbfgs` keeps every problem's state in rows of NumPy arrays and
-updates them with about a hundred array operations per round; on a few dozen numbers each, their calls
-take the time (about 0.2 ms per round, 3.8 ms of an EED window's level two). :func:`lbfgs` runs the same
+:func:`~evseg_torch.level_two.solver.optimizers.lbfgs` keeps every problem's state in rows of NumPy
+arrays and updates them with about a hundred array operations per round; on a few dozen numbers each,
+their calls take the time. :func:`lbfgs` runs the same
 rounds with the bookkeeping between two evaluations as one compiled call: each row's line search,
 curvature pair, acceptance, stopping tests and two-loop recursion, written as the NumPy code's steps
 in its order and dtype (constants in the dtype of the state, as NumPy casts Python scalars; sums of the
 few parameters in order from zero, as NumPy adds them; IEEE division, NaN through ``minimum`` and
 ``maximum``), so its results equal the NumPy code's bit for bit on this machine (tested on the solvers'
-problems and measured on the pipeline's segmentations, ``docs/speed.md``). The evaluations are the
-caller's, as before. Numba is the optional ``fast`` extra; without it the NumPy code runs.
+problems). The evaluations are the caller's. :mod:`evseg_torch.backend` chooses it.
 """
 
 from __future__ import annotations
@@ -18,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from evseg_torch.kernels.common import maximum
-from evseg_torch.level_two.solver.optimizers import optimizers as solver
+from evseg_torch.level_two.solver import optimizers as solver
 
 _OPTIONS = {"cache": True, "error_model": "numpy"}  # IEEE results of x / 0, as NumPy's
 
