@@ -1,9 +1,10 @@
-r"""Model discovery for level two: regions of events that may follow a motion missing from the pool.
+r"""Discovery (beyond the paper): regions of events that may follow a motion missing from the pool.
 
-Level two of the paper (EMSGC's block-coordinate descent) can only remove models, so a motion that level
-one missed, or merged with another, is never recovered. Discovery proposes new models from the current
-labelling; the graph cut, with its label cost, then decides whether each is used. Three kinds of
-regions (spatially connected groups of events on the pixel grid) are proposed:
+The paper's level two (EMSGC's descent) can only remove models, so a motion that level one missed, or
+merged with another, is never recovered. Discovery proposes models from a settled labelling; the next
+labelling, with its label cost, decides whether each is used. Regions are spatially connected groups of
+events on the pixel grid (each event's pixel dilated by ``radius``, so events of one sparse, fast object
+a few pixels apart join one group while separate objects stay apart), of three kinds:
 
 * **split**: a cluster whose events form two or more separate groups of at least ``min_events`` each
   (two objects that one compromise model holds, or an object and a patch of background) proposes each
@@ -12,34 +13,26 @@ regions (spatially connected groups of events on the pixel grid) are proposed:
   sharply by a model of their own;
 * **merge**: two touching clusters other than the largest (an object that a poor model split in two)
   propose their union;
-* **residual**: events that their own model compensates badly (data cost at least ``residual_cost`` of
-  the 255 a fully unexplained event pays: a motion-blurred streak) are grouped, and each group of at
-  least ``min_events`` is proposed.
+* **residual**: events that their own model compensates badly (data cost at least ``residual_cost``: a
+  motion-blurred streak) are grouped, and each group of at least ``min_events`` is proposed.
 
 A later round (``discovery_rounds`` above 1) proposes only the regions that hold events of a cluster the
-round before created: a new cluster's halves and groups, and its unions with its neighbours (the union of
-an object's two accepted halves joins it again). Elsewhere the labelling is the one whose proposals the
-round before judged already. Its accepted proposals are labelled once: the refit and second labelling
-that follow the first round gained nothing measurable after a later one, and cost time
-(``docs/objects.md``).
+round before created (a new cluster's halves and groups, its unions with its neighbours); elsewhere the
+labelling is one whose proposals were judged already. A later round's accepted proposals are labelled
+once, the first round's labelled, refitted and labelled again.
 
-Connectivity: an event's pixel is dilated by ``radius`` pixels (a square), so events of one sparse,
-fast object a few pixels apart join one group while separate objects stay apart.
+Each region is fitted by contrast maximisation of an even subsample of its events from the sharper of two
+starts: a pure translation at the velocity of the region's event centroid (the least-squares slope of
+the events' positions over time, which a small object's streak follows closely whatever the pool says),
+and the model of the cluster it came from moved to that velocity, its rotation and scale kept
+(:func:`recentred`). A fit is kept if it compensates its region at least as sharply as the region's own
+model and does not collapse it (its area changes by at most a tenth on average).
 
-Each region gets a model by contrast maximisation of its own events from two starts, keeping the sharper
-fit: a pure translation at the velocity of the region's event centroid (the least-squares slope of the
-events' positions over time, which a small object's streak follows closely whatever the pool says), and
-the model of the cluster it came from moved to that velocity, its rotation and scale kept
-(:func:`recentred`; the cluster's own model where the region moves with it).
-
-One region is scored before it is fitted: the largest from the largest cluster (the background's main
-group) is fitted only if one of its starts already compensates it more sharply than the background's
-model. Where none does, its fit returns to that model (0.3–1.6 px apart over the window on EED
-windows), which the descent's refit gives anyway, and that fit on a whole-sensor image was most of
-discovery's time; where one does, it is a motion hidden in the background (an object level one missed
-that the background's label holds), and its fit is how it is found (``docs/speed.md``).
+The background's largest region is fitted only if one of its starts already compensates it more sharply
+than the background's model: otherwise its fit returns to that model, which the descent's refit gives
+anyway, at the cost of a fit on the whole sensor; where one does, it is a motion hidden in the
+background (an object level one missed), and its fit is how it is found.
 """
-
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -51,13 +44,22 @@ from torch import Tensor, nn
 
 from evseg_torch.config import LevelTwoConfig
 from evseg_torch.events import EventBatch
-from evseg_torch.level_two.descent.state import Step, WindowState, subsample
+from evseg_torch.level_two.descent.batches import subsample
+from evseg_torch.level_two.descent.state import WindowState
 from evseg_torch.level_two.objectives.contrast import warp_area_element
 from evseg_torch.level_two.solver.cmax import ContrastMaximization
 from evseg_torch.level_two.solver.crops import gather_members
 from evseg_torch.motion import MotionModel
 
-__all__ = ["Discovery", "bisect", "candidate_regions", "centroid_velocity", "recentred", "translation_params"]
+__all__ = [
+    "Discovery",
+    "Proposals",
+    "bisect",
+    "candidate_regions",
+    "centroid_velocity",
+    "recentred",
+    "translation_params",
+]
 
 # A proposal only needs to show whether a region has a sharper motion of its own; an even subsample of
 # this many events per region finds it, at a fraction of the cost of fitting whole regions.
@@ -239,6 +241,14 @@ def _rows(value: Tensor, weights: Tensor) -> Tensor:
     return value.expand(weights.shape[0], *value.shape)
 
 
+class Proposals(NamedTuple):
+    """One window's accepted proposals: their fitted models :math:`(R, P)` and the events of each one's
+    region, the proposal's first support in the object phase."""
+
+    params: Tensor
+    regions: list[np.ndarray]
+
+
 class _Candidates(NamedTuple):
     """One window's candidate regions for discovery: their members :math:`(R, N)` (an even subsample),
     the start of each one's fit :math:`(R, P)`, the contrast loss of the model of the cluster it came
@@ -271,11 +281,15 @@ class Discovery:
     ) -> None:
         self.model, self.sensor_size, self.config, self.fit = model, sensor_size, config, fit
 
-    def propose(self, events: EventBatch, states: list[WindowState]) -> None:
-        """Propose models for the windows' candidate regions; a window with proposals labels again.
+    def propose(self, events: EventBatch, states: list[WindowState]) -> list[Proposals]:
+        """Models for the windows' candidate regions, each window's :class:`Proposals`.
 
         The regions and the fits' starts are found per window (NumPy and a few small tensor operations);
         the fits, most of discovery's time, run for all windows at once.
+
+        Args:
+            events: the windows' events, a padded batch in the order of ``states``.
+            states: the windows, each right after a settled labelling (read, not changed).
         """
         own = [
             state.event_cost.gather(
@@ -285,7 +299,7 @@ class Discovery:
         ]
         # Discovery groups events on the CPU: the one copy back, for all windows.
         own = nn.utils.rnn.pad_sequence(own, batch_first=True)[..., 0].cpu().numpy()
-        candidates = []
+        candidates, regions_of = [], []
         for row, state in enumerate(states):
             regions = candidate_regions(
                 state.xy,
@@ -299,7 +313,7 @@ class Discovery:
             )
             candidate, regions = self._proposal_starts(state, regions[: self.config.discovery_max_proposals])
             candidates.append(candidate)
-            state.regions = [members for _, members in regions]
+            regions_of.append([members for _, members in regions])
         counts = [len(candidate.start) for candidate in candidates]
         fitted = [candidate.start for candidate in candidates]
         if any(counts):
@@ -310,22 +324,12 @@ class Discovery:
                 start[row, : counts[row]] = candidate.start
                 members[row, : counts[row], : candidate.members.shape[1]] = candidate.members
             fitted = self.fit(events, start, members, max_iter=self.config.discovery_max_iter)
-        for row, (state, candidate) in enumerate(zip(states, candidates, strict=True)):
+        proposals = []
+        for row, (candidate, regions) in enumerate(zip(candidates, regions_of, strict=True)):
             accepted = self._accepted(candidate, fitted[row][: counts[row]])
-            proposed = fitted[row][: counts[row]][accepted]
-            state.regions = [
-                region for region, keep in zip(state.regions, accepted.tolist(), strict=True) if keep
-            ]
-            if len(proposed):
-                # The proposals are fitted already: the next labelling decides which are used.
-                state.proposed_from = state.params.shape[0]
-                state.params = torch.cat([state.params, proposed])
-                # The first round's proposals are labelled, refitted to the events they got and labelled
-                # again; a later round's are labelled once (module docstring).
-                state.rounds_left = max(state.rounds_left, 1) + (state.new_clusters is None)
-                state.step = Step.LABEL
-            else:
-                state.step = Step.STOP
+            kept = [region for region, keep in zip(regions, accepted.tolist(), strict=True) if keep]
+            proposals.append(Proposals(fitted[row][: counts[row]][accepted], kept))
+        return proposals
 
     def _proposal_starts(
         self, state: WindowState, regions: list[tuple[int, np.ndarray]]

@@ -14,8 +14,8 @@ happens to fit them. Two additions make each non-background cluster one spatiall
   most events: large, densely textured objects can outnumber a sparse background; and any other cluster
   whose events spread over the view: :func:`spans_view`) has no support
   term. The term applies in level two's *object phase*, the labellings after its descent has settled
-  (:mod:`~evseg_torch.level_two.descent.segmenter`; from the first labelling, supports built on poor early
-  labels kept their mistakes, see ``docs/objects.md``). A label's support is rebuilt before each of
+  (:mod:`~evseg_torch.level_two.descent.steps`; supports built from the first labelling would keep the
+  mistakes of its poor early labels). A label's support is rebuilt before each of
   those labellings from the current labels and refitted models; a model proposed by discovery has its
   region as its first support.
 * **object split**: when a labelling of the object phase has settled, a non-background cluster whose
@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from evseg_torch.config import LevelTwoConfig
-from evseg_torch.level_two.descent.state import Step, WindowState, site_majority
+from evseg_torch.level_two.descent.state import WindowState
 from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import MotionModel
 
@@ -318,31 +318,6 @@ class ObjectPhase:
     def __init__(self, model: MotionModel, sensor_size: tuple[int, int], config: LevelTwoConfig) -> None:
         self.model, self.sensor_size, self.config = model, sensor_size, config
 
-    def next_step(self, state: WindowState) -> Step:
-        """What follows a settled labelling once discovery is done: the object phase
-        (:mod:`~evseg_torch.level_two.objects`). Its first step labels again with the support term, when
-        some event lies outside its own cluster's support; later ones split clusters of separate objects
-        and refit the parts, ``object_splits`` times at most; then the window stops."""
-        if not self.config.objects:
-            return Step.STOP
-        if not state.objects_on:
-            state.objects_on = True
-            support = self.support_cost(state)
-            if np.any(support[np.arange(state.n_sites), state.node_labels] > 0):
-                # No model moved since this labelling: its data costs stand, for the surviving models.
-                state.event_cost = state.event_cost[
-                    :, torch.as_tensor(state.keep, device=state.params.device)
-                ]
-                state.node_cost = state.node_cost[:, state.keep] + support
-                state.costs_ready = True
-                state.rounds_left = max(state.rounds_left, 1)
-                return Step.LABEL
-        if state.splits_left > 0 and self.split(state):
-            state.splits_left -= 1
-            state.rounds_left = max(state.rounds_left, 1)
-            return Step.REFIT
-        return Step.STOP
-
     def compensated(self, state: WindowState) -> np.ndarray:
         """Every event of the window compensated by every model of its pool, :math:`(K, N, 2)`, on the CPU."""
         with torch.no_grad():
@@ -380,13 +355,8 @@ class ObjectPhase:
             )
         return site_cost
 
-    def split(self, state: WindowState) -> bool:
-        """Split the window's clusters of separate objects, each part keeping its parent's model until its
-        refit (:func:`~evseg_torch.level_two.objects.split_objects`); whether any cluster was split."""
+    def split(self, state: WindowState) -> tuple[np.ndarray, np.ndarray] | None:
+        """The window's clusters of separate objects split (:func:`split_objects`): the new labels and
+        each new cluster's parent; ``None`` where no cluster holds separate objects."""
         labels, parent = split_objects(state.labels, self.groups(state, self.compensated(state)))
-        if len(parent) == state.params.shape[0]:
-            return False
-        state.labels = labels
-        state.node_labels = site_majority(labels, state.sites, state.n_sites)
-        state.params = state.params[torch.as_tensor(parent, device=state.params.device)]
-        return True
+        return None if len(parent) == state.params.shape[0] else (labels, parent)

@@ -9,25 +9,24 @@ the IROS 2021 paper's level two) is
     + \lambda_M \, |\{l_k\}|,
 
 with the data term of :mod:`~evseg_torch.level_two.energy.data_term`, the spatio-temporal graph of
-:mod:`~evseg_torch.level_two.energy.graph` and a label cost :math:`\lambda_M` per model in use (scaled with
-dense windows, ``label_cost_events``). It is minimised by block-coordinate descent, for at most
-``n_iter_segmentation`` rounds: data costs of every event under every model; labelling by α-expansion
-from the current labels; empty models dropped and the rest renumbered by size, largest first; a stop
-when the labels settle; otherwise each cluster's model refitted by contrast maximisation of its own
-events (:mod:`~evseg_torch.level_two.solver.cmax`).
+:mod:`~evseg_torch.level_two.energy.graph` and the label cost of
+:mod:`~evseg_torch.level_two.energy.label_cost` per model in use. It is minimised by block-coordinate
+descent: data costs of every event under every model; a labelling by α-expansion from the current
+labels, empty models dropped and the rest renumbered by size; until the labels settle (or
+``n_iter_segmentation`` labellings), each cluster's model refitted by contrast maximisation of its own
+events (:mod:`~evseg_torch.level_two.solver.cmax`) and the window labelled again. Beyond the paper, a
+settled window then takes discovery's rounds (:mod:`~evseg_torch.level_two.discovery`) and the object
+phase (:mod:`~evseg_torch.level_two.objects`); ``discovery_rounds=0`` and ``objects=False`` give the
+paper's level two. The steps and the order they come in: :mod:`~evseg_torch.level_two.descent.steps`.
 
-Beyond the paper, once the labels settle: **discovery** (:mod:`~evseg_torch.level_two.discovery`)
-proposes models for regions that may move otherwise, and the next labelling decides with the same
-energy; then the **object phase** (:mod:`~evseg_torch.level_two.objects`) makes each non-background
-cluster one object. ``discovery_rounds=0`` and ``objects=False`` give the paper's level two.
-
-Each window's state is a :class:`~evseg_torch.level_two.descent.state.WindowState`; a list or a padded
-batch of windows is segmented in lockstep, one batched data term and one batched fit per round for all
-windows still running, and each window's result equals its result alone (bit for bit on the CPU with
-one thread). The deviations from EMSGC, the energies, devices and batches in detail, with their
-measurements: ``docs/level_two.md``.
+:class:`GraphCutContrastSegmenter` is the driver: each window's state is a
+:class:`~evseg_torch.level_two.descent.state.WindowState`, and the windows of a list or padded batch
+advance in lockstep, one round at a time: the data costs of every window waiting for a labelling, in
+one batched call; each window's labelling, then the steps that are its own (the object phase's); the
+proposals of every window that asked for them, in one batched fit; the refits of every window that asked
+for one, in one batched fit. Each window's result equals its result alone (bit for bit on the CPU with
+one thread). The design in detail: ``docs/design/level_two.md``.
 """
-
 from __future__ import annotations
 
 import dataclasses
@@ -44,22 +43,20 @@ from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one, batch_windows
 from evseg_torch.graphcut.alpha_expansion import alpha_expansion
 from evseg_torch.level_two.checks import check_events, check_labels
-from evseg_torch.level_two.descent.state import (
-    StageClock,
-    Step,
-    WindowState,
-    changed_fraction,
+from evseg_torch.level_two.descent.batches import (
     chunks,
     memberships,
     padded_pools,
     padded_rows,
-    renumber_by_size,
     select_windows,
-    start_window,
     subsample,
 )
+from evseg_torch.level_two.descent.clock import StageClock
+from evseg_torch.level_two.descent.state import WindowState, start_window
+from evseg_torch.level_two.descent.steps import Step, next_step
 from evseg_torch.level_two.discovery import Discovery
 from evseg_torch.level_two.energy.data_term import DataCost
+from evseg_torch.level_two.energy.label_cost import label_cost
 from evseg_torch.level_two.image.splat import splat_events
 from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.level_two.objectives.contrast import contrast_loss
@@ -67,22 +64,15 @@ from evseg_torch.level_two.objects import ObjectPhase
 from evseg_torch.level_two.solver.cmax import ContrastMaximization
 from evseg_torch.motion import MotionModel, make_motion_model
 
-__all__ = ["DEFAULT_SOFT_TEMPERATURE", "GraphCutContrastSegmenter", "LevelTwoResult"]
+__all__ = ["GraphCutContrastSegmenter", "LevelTwoResult"]
 
-# On the CPU, a batch is segmented in groups of consecutive windows of at most this many events: batching
-# amortises the refits' and discovery's per-call overhead (measured on 40k-event windows, 2 cores: refits
-# 178 -> 113 ms per window and discovery 401 -> 261 in batches of 8), but batches of 32 lost most of it
-# (157 and 358) to arrays that outgrow the caches.
+# Two sizes that change the speed on the CPU, never a result (a window's result equals its result alone):
+# a batch is segmented in groups of consecutive windows of at most this many events (batching amortises
+# the fits' per-call overhead until the arrays outgrow the caches) ...
 _CPU_BATCH_EVENTS = 1 << 18
-# On the CPU, the data term of a batch runs in chunks of windows of at most this many event-model pairs:
-# its dozens of passes over (B, K, N) arrays are bound by memory once these outgrow the caches (measured
-# on 40k-event windows with 4 models, 2 cores: 64-66 ms per window in chunks of 1-2 windows, 80-84 in
-# chunks of 4-8). Other devices cost the whole batch at once. The costs are the same either way.
+# ... and its data term in chunks of windows of at most this many event-model pairs (its passes over
+# (B, K, N) arrays are bound by memory beyond). Other devices take the whole batch at once.
 _CPU_DATA_TERM_PAIRS = 1 << 18
-
-DEFAULT_SOFT_TEMPERATURE = LevelTwoConfig.soft_temperature
-"""Default temperature of :attr:`LevelTwoResult.soft_assignments`, in data-cost units (of ``[0, 255]``),
-chosen by temperature scaling on synthetic scenes (``docs/level_two.md``)."""
 
 
 @dataclass(frozen=True)
@@ -353,12 +343,14 @@ class GraphCutContrastSegmenter(nn.Module):
                 self._data_costs(batch, pending, site_index)
                 clock.lap("data_term", pending)
             for state in active:
-                state.costs_ready = False
                 self._label(state)
                 clock.lap("labelling", [state])
             proposing = [state for state in active if state.step is Step.PROPOSE]
             if proposing:
-                self.discovery.propose(select_windows(batch, proposing), proposing)
+                proposals = self.discovery.propose(select_windows(batch, proposing), proposing)
+                for state, (params, regions) in zip(proposing, proposals, strict=True):
+                    state.add_proposals(params, regions)
+                    self._advance(state)
                 clock.lap("discovery", proposing)
             config = self.config
             warm_max_iter = config.max_iter if config.warm_max_iter is None else config.warm_max_iter
@@ -409,54 +401,35 @@ class GraphCutContrastSegmenter(nn.Module):
             node_cost = node_cost.view(len(chunk), n_nodes, -1).cpu().numpy()
             for row, state in enumerate(chunk):
                 n_events, n_models = len(state.events), state.params.shape[0]
-                state.event_cost = cost[row, :n_events, :n_models]
-                state.node_cost = node_cost[row, : state.n_sites, :n_models].astype(np.float64)
+                own_cost = node_cost[row, : state.n_sites, :n_models].astype(np.float64)
                 if state.objects_on:
-                    state.node_cost += self.object_phase.support_cost(state)
+                    own_cost += self.object_phase.support_cost(state)
+                state.costed(cost[row, :n_events, :n_models], own_cost)
 
     def _label(self, state: WindowState) -> None:
-        """One labelling of a window by α-expansion, then its renumbering and what comes next."""
-        state.rounds_left -= 1
+        """One labelling of a window by α-expansion, then the steps that follow it at once."""
         result = alpha_expansion(
             state.node_cost,
             state.graph,
             smoothness=self.config.lambda_smooth,
-            label_cost=self._label_cost(len(state.events)),
+            label_cost=label_cost(len(state.events), self.config.lambda_label, self.config.label_cost_events),
             init_labels=state.node_labels,
             max_cycles=self.config.n_iter_labeling,
         )
-        event_labels = result.labels[state.sites]
-        mapping, keep = renumber_by_size(event_labels, state.params.shape[0])
-        state.node_labels, labels = mapping[result.labels], mapping[event_labels]
-        state.params = state.params[torch.as_tensor(keep, device=state.params.device)]
-        converged = (
-            len(keep) == 1
-            or (bool(state.history) and result.energy == state.history[-1])
-            or (
-                state.labels is not None
-                and changed_fraction(state.labels, labels, keep) <= self.config.label_tol
-            )
-        )
-        if state.proposed_from is not None:
-            state.new_clusters = keep >= state.proposed_from
-            if not state.new_clusters.any():
-                state.discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
-        elif state.new_clusters is not None and not state.objects_on:
-            # Followed through the descent's renumbering; the object phase, whose splits add clusters,
-            # comes after the last round and no longer needs it.
-            state.new_clusters = state.new_clusters[keep]
-        state.proposed_from = None
-        state.regions = []
-        state.labels, state.keep = labels, keep
-        state.history.append(result.energy)
-        done = converged or state.rounds_left == 0
-        if not done:
-            state.step = Step.REFIT
-        elif state.discoveries_left > 0:
-            state.discoveries_left -= 1
-            state.step = Step.PROPOSE
-        else:
-            state.step = self.object_phase.next_step(state)
+        state.labelled(result.labels, result.energy, self.config.label_tol)
+        self._advance(state)
+
+    def _advance(self, state: WindowState) -> None:
+        """Decide a window's next step (:func:`~evseg_torch.level_two.descent.steps.next_step`); the object
+        phase's steps are the window's own, so they run at once, until a step that waits for the batch
+        (a labelling, a refit) or the end."""
+        state.step = next_step(state, self.config.objects)
+        while state.step in (Step.SUPPORT, Step.SPLIT):
+            if state.step is Step.SUPPORT:
+                state.add_support(self.object_phase.support_cost(state))
+            else:
+                state.split_into(self.object_phase.split(state))
+            state.step = next_step(state, self.config.objects)
 
     def _refit(self, max_iter: int, events: EventBatch, states: list[WindowState]) -> None:
         """Refit every cluster of the windows by contrast maximisation of its own events, all at once."""
@@ -467,7 +440,8 @@ class GraphCutContrastSegmenter(nn.Module):
             members = subsample(members, self.config.refit_max_events)
         fitted = self.refit(events, params, members, max_iter=max_iter)
         for row, state in enumerate(states):
-            state.params = fitted[row, : state.params.shape[0]]
+            state.refitted(fitted[row, : state.params.shape[0]])
+            self._advance(state)
 
     def _results(self, batch: EventBatch, states: list[WindowState]) -> list[LevelTwoResult]:
         """Each window's result; the images of all windows come from one splat."""
@@ -495,10 +469,3 @@ class GraphCutContrastSegmenter(nn.Module):
                 )
             )
         return results
-
-    def _label_cost(self, n_events: int) -> float:
-        """The label cost of a window of ``n_events``: ``lambda_label``, times
-        ``n_events / label_cost_events`` in windows of more than ``label_cost_events`` events."""
-        if self.config.label_cost_events is None:
-            return self.config.lambda_label
-        return self.config.lambda_label * max(1.0, n_events / self.config.label_cost_events)

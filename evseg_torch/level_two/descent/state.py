@@ -1,52 +1,52 @@
-"""One window's state in level two's block-coordinate descent, and the helpers that batch windows.
+"""One window's state in level two's descent, and the only code that changes it.
 
-:class:`WindowState` (started by :func:`start_window`) is what the segmenter
-(:mod:`~evseg_torch.level_two.descent.segmenter`), discovery (:mod:`~evseg_torch.level_two.discovery`) and the
-object phase (:mod:`~evseg_torch.level_two.objects`) step, round by round; :class:`StageClock` times the
-stages; the functions below renumber labels, build memberships and pad the windows of a batch into shared
-tensors.
+:class:`WindowState` (begun by :func:`start_window`) holds a window's graph, its pool, labels and costs,
+its budgets of rounds, discovery rounds and splits, and the last step with its outcome, which
+:func:`~evseg_torch.level_two.descent.steps.next_step` reads. The steps themselves compute (the
+labelling, the refits, discovery's proposals, the object phase's support term and splits) and hand
+their results to the window's methods, which are the only writers of its state.
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
-from enum import Enum
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from evseg_torch.config import LevelTwoConfig
 from evseg_torch.events import EventBatch
 from evseg_torch.graphcut.alpha_expansion import PottsGraph, potts_graph
 from evseg_torch.level_two.checks import check_labels, check_params
+from evseg_torch.level_two.descent.steps import Step
 from evseg_torch.level_two.energy.graph import event_graph, site_graph
 from evseg_torch.motion import MotionModel
 
 
-class Step(Enum):
-    """What a window does next in level two's block-coordinate descent."""
-
-    LABEL = "label"  # label again (with new proposals, or the object phase's support term)
-    REFIT = "refit"  # refit every cluster's model to its events, then label
-    PROPOSE = "propose"  # discovery: propose models for candidate regions, then label
-    STOP = "stop"  # the window is done
-
-
 @dataclass
 class WindowState:
-    """One window's block-coordinate descent as the segmenter steps it, round by round.
+    """One window in level two's descent (module docstring).
 
-    ``sites`` maps each event to its graph-cut node (the event itself without sites), ``xy`` holds its
-    integer pixels on the CPU (for discovery), ``event_cost`` the last data costs :math:`(N, K)` and
-    ``node_cost`` their sums per node for the graph cut (``costs_ready`` when they are set for the next
-    labelling already); ``step`` (:class:`Step`) is what follows the last labelling.
-    ``objects_on`` once the object phase has begun, ``splits_left`` its splits still allowed, ``regions``
-    the events of each proposal (its first support); ``new_clusters`` marks the clusters that the last
-    discovery round's proposals became (``None`` until a round's proposals are labelled), the only ones a
-    later round proposes from.
+    The window: ``index`` in its batch, its ``events``, their integer pixels ``xy`` and ``polarity`` on
+    the CPU, the graph cut's ``graph`` over ``n_sites`` nodes and each event's node ``sites`` (the event
+    itself without sites).
+
+    The descent: the pool ``params`` :math:`(K, P)`, each event's and node's label (``labels``,
+    ``node_labels``; ``None`` before the first labelling), the survivors ``keep`` of the last
+    labelling's pool, the energy after each labelling ``history``, the last data costs ``event_cost``
+    :math:`(N, K)` and their sums per node ``node_cost`` for the graph cut (``costs_ready`` when they are
+    set for the next labelling already), and the budgets ``rounds_left``, ``discoveries_left`` and
+    ``splits_left``.
+
+    Discovery: the events of each proposal ``regions`` (its first support in the object phase), the
+    pool index ``proposed_from`` of the first proposal awaiting a labelling, and ``new_clusters``, the
+    clusters the last round's proposals became (``None`` until a round's proposals are labelled), the
+    only ones a later round proposes from. ``objects_on`` once the object phase has begun.
+
+    The last step ``last`` and its outcome: ``settled`` (a labelling converged or used the last round),
+    ``proposed`` (discovery proposed models), ``outside_support`` (the support term put some node
+    outside its own cluster's support), ``split_made``; ``step``, the step it takes next.
     """
 
     index: int
@@ -63,35 +63,100 @@ class WindowState:
     discoveries_left: int
     splits_left: int
     history: list[float] = field(default_factory=list)
-    regions: list[np.ndarray] = field(default_factory=list)
-    objects_on: bool = False
-    costs_ready: bool = False
-    proposed_from: int | None = None
-    new_clusters: np.ndarray | None = None
+    keep: np.ndarray | None = None
     event_cost: Tensor | None = None
     node_cost: np.ndarray | None = None
-    keep: np.ndarray | None = None
+    costs_ready: bool = False
+    regions: list[np.ndarray] = field(default_factory=list)
+    proposed_from: int | None = None
+    new_clusters: np.ndarray | None = None
+    objects_on: bool = False
+    last: Step | None = None
+    settled: bool = False
+    proposed: bool = False
+    outside_support: bool = False
+    split_made: bool = False
     step: Step = Step.LABEL
 
+    def costed(self, event_cost: Tensor, node_cost: np.ndarray) -> None:
+        """The data costs :math:`(N, K)` of the window's events and their sums per node, for the next
+        labelling."""
+        self.event_cost, self.node_cost = event_cost, node_cost
 
-STAGES = ("graph", "data_term", "labelling", "refit", "discovery", "images")
-"""The stages of level two that :class:`StageClock` times."""
+    def labelled(self, node_labels: np.ndarray, energy: float, label_tol: float) -> None:
+        """A labelling of the nodes and its energy: empty models dropped, the others renumbered by size
+        (largest first), and whether the labels settled (one model left, the energy unchanged, or at
+        most ``label_tol`` of the events relabelled; or no round left)."""
+        self.rounds_left -= 1
+        event_labels = node_labels[self.sites]
+        mapping, keep = renumber_by_size(event_labels, self.params.shape[0])
+        self.node_labels, labels = mapping[node_labels], mapping[event_labels]
+        self.params = self.params[torch.as_tensor(keep, device=self.params.device)]
+        converged = (
+            len(keep) == 1
+            or (bool(self.history) and energy == self.history[-1])
+            or (self.labels is not None and changed_fraction(self.labels, labels, keep) <= label_tol)
+        )
+        if self.proposed_from is not None:
+            self.new_clusters = keep >= self.proposed_from
+            if not self.new_clusters.any():
+                self.discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
+        elif self.new_clusters is not None and not self.objects_on:
+            # Followed through the descent's renumbering; the object phase, whose splits add clusters,
+            # comes after the last round and no longer needs it.
+            self.new_clusters = self.new_clusters[keep]
+        self.proposed_from = None
+        self.regions = []
+        self.labels, self.keep = labels, keep
+        self.history.append(energy)
+        self.costs_ready = False
+        self.settled = converged or self.rounds_left == 0
+        self.last = Step.LABEL
 
+    def refitted(self, params: Tensor) -> None:
+        """The clusters' refitted models :math:`(K, P)`."""
+        self.params = params
+        self.last = Step.REFIT
 
-class StageClock:
-    """Wall-clock milliseconds per stage and window; a stage run for several windows at once is shared
-    evenly by them, so the windows' timings add up to the batch's."""
+    def add_proposals(self, params: Tensor, regions: list[np.ndarray]) -> None:
+        """Discovery's fitted proposals :math:`(R, P)` and their regions' events: the next labelling
+        decides which are used. The first round's are labelled, refitted to the events they got and
+        labelled again; a later round's are labelled once (:mod:`~evseg_torch.level_two.discovery`)."""
+        self.discoveries_left -= 1
+        self.regions = regions
+        self.proposed = len(params) > 0
+        if self.proposed:
+            self.proposed_from = self.params.shape[0]
+            self.params = torch.cat([self.params, params])
+            self.rounds_left = max(self.rounds_left, 1) + (self.new_clusters is None)
+        self.last = Step.PROPOSE
 
-    def __init__(self, n_windows: int) -> None:
-        self.timings = [dict.fromkeys(STAGES, 0.0) for _ in range(n_windows)]
-        self._last = time.perf_counter()
+    def add_support(self, support: np.ndarray) -> None:
+        """The object phase's support term of every node under every model :math:`(S, K)`: it joins the
+        data costs, and a labelling follows where some node lies outside its own cluster's support. No
+        model moved since the last labelling, so its data costs stand for the surviving models."""
+        self.objects_on = True
+        self.outside_support = bool(np.any(support[np.arange(self.n_sites), self.node_labels] > 0))
+        if self.outside_support:
+            self.event_cost = self.event_cost[:, torch.as_tensor(self.keep, device=self.params.device)]
+            self.node_cost = self.node_cost[:, self.keep] + support
+            self.costs_ready = True
+            self.rounds_left = max(self.rounds_left, 1)
+        self.last = Step.SUPPORT
 
-    def lap(self, stage: str, windows: Sequence[WindowState]) -> None:
-        now = time.perf_counter()
-        share = 1e3 * (now - self._last) / len(windows)
-        for window in windows:
-            self.timings[window.index][stage] += share
-        self._last = now
+    def split_into(self, split: tuple[np.ndarray, np.ndarray] | None) -> None:
+        """The object phase's split (:func:`~evseg_torch.level_two.objects.split_objects`): the new labels
+        and each new cluster's parent, whose model it keeps until its refit; ``None`` where no cluster
+        holds separate objects."""
+        self.split_made = split is not None
+        if split is not None:
+            labels, parent = split
+            self.labels = labels
+            self.node_labels = site_majority(labels, self.sites, self.n_sites)
+            self.params = self.params[torch.as_tensor(parent, device=self.params.device)]
+            self.splits_left -= 1
+            self.rounds_left = max(self.rounds_left, 1)
+        self.last = Step.SPLIT
 
 
 def start_window(
@@ -163,62 +228,3 @@ def site_majority(labels: np.ndarray, sites: np.ndarray, n_sites: int) -> np.nda
 def changed_fraction(old: np.ndarray, new: np.ndarray, keep: np.ndarray) -> float:
     """Fraction of events whose model changed; ``new`` numbers the surviving models ``keep`` of ``old``'s."""
     return float(np.mean(keep[new] != old))
-
-
-def memberships(labels: Tensor, n_clusters: int, dtype: torch.dtype) -> Tensor:
-    """One-hot memberships :math:`(..., K, N)` of labels :math:`(..., N)`; label -1 (padding) is in none."""
-    return (labels[..., None, :] == torch.arange(n_clusters, device=labels.device)[:, None]).to(dtype)
-
-
-def subsample(weights: Tensor, max_events: int) -> Tensor:
-    """Keep every s-th member of each cluster (in event order), s chosen so that at most ``max_events`` stay.
-
-    Args:
-        weights: one-hot memberships :math:`(..., K, N)`.
-    """
-    counts = weights.sum(dim=-1, keepdim=True)
-    stride = torch.ceil(counts / max_events).clamp_min(1)
-    rank = torch.cumsum(weights, dim=-1) - 1
-    return weights * (torch.remainder(rank, stride) == 0)
-
-
-def chunks(sizes: Sequence[int], budget: int | None) -> list[list[int]]:
-    """Consecutive indices of ``sizes`` in chunks whose sizes add up to at most ``budget`` (each chunk
-    holds one at least); one chunk of all for ``budget`` ``None``."""
-    chunks, total = [[]], 0
-    for index, size in enumerate(sizes):
-        total += size
-        if chunks[-1] and budget is not None and total > budget:
-            chunks.append([])
-            total = size
-        chunks[-1].append(index)
-    return chunks
-
-
-def select_windows(batch: EventBatch, states: Sequence[WindowState]) -> EventBatch:
-    """The windows of ``states`` from the padded batch (itself when it holds just them), padded to the
-    longest of them."""
-    rows = [state.index for state in states]
-    if rows == list(range(len(batch))):
-        return batch
-    index = torch.as_tensor(rows, device=batch.xy.device)
-    longest = max(len(state.events) for state in states)
-    xy, t, p, lengths = (field[index] for field in batch)
-    return EventBatch(xy[:, :longest], t[:, :longest], p[:, :longest], lengths)
-
-
-def padded_rows(rows: Sequence[np.ndarray], length: int, device: torch.device) -> Tensor:
-    """Integer rows :math:`(n_b,)` as one int64 tensor :math:`(B, L)`, ``L = length``, padded with -1,
-    moved to ``device`` in one copy."""
-    padded = np.full((len(rows), length), -1, dtype=np.int64)
-    for index, row in enumerate(rows):
-        padded[index, : len(row)] = row
-    return torch.as_tensor(padded, device=device)
-
-
-def padded_pools(pools: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
-    """Pools :math:`(K_b, P)` as one tensor :math:`(B, K, P)` padded with zeros, and which models are
-    real, bool :math:`(B, K)`."""
-    params = nn.utils.rnn.pad_sequence(list(pools), batch_first=True)
-    counts = torch.tensor([len(pool) for pool in pools], device=params.device)
-    return params, torch.arange(params.shape[1], device=params.device) < counts[:, None]

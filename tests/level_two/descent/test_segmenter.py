@@ -11,6 +11,7 @@ from evseg_torch.level_two.descent import segmenter as segmenter_module
 from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter, LevelTwoResult
 from evseg_torch.level_two.discovery import Discovery
 from evseg_torch.level_two.energy.graph import event_graph, site_graph
+from evseg_torch.level_two.energy.label_cost import label_cost
 from evseg_torch.metrics import labelling_accuracy, per_object_iou
 from evseg_torch.motion import Translation
 from evseg_torch.synthetic import make_scene
@@ -101,7 +102,9 @@ class TestGraphCutContrastSegmenter:
         edges, weights = event_graph(events)
         energy = {
             "smoothness": segmenter.config.lambda_smooth,
-            "label_cost": segmenter._label_cost(len(events)),
+            "label_cost": label_cost(
+                len(events), segmenter.config.lambda_label, segmenter.config.label_cost_events
+            ),
         }
         initial = labeling_energy(cost.argmin(1), cost, edges, weights, **energy)
         assert result.energy_history[0] <= initial
@@ -534,11 +537,21 @@ class TestDiscovery:
 
     def test_label_cost_scales_with_the_window(self, two_layers):
         segmenter = _segmenter(lambda_label=3000.0, label_cost_events=5000.0)
-        assert segmenter._label_cost(5000) == pytest.approx(3000.0)
-        assert segmenter._label_cost(1250) == pytest.approx(3000.0)  # sparse windows keep lambda_label
-        assert segmenter._label_cost(20000) == pytest.approx(12000.0)
+        assert label_cost(
+            5000, segmenter.config.lambda_label, segmenter.config.label_cost_events
+        ) == pytest.approx(3000.0)
+        assert label_cost(
+            1250, segmenter.config.lambda_label, segmenter.config.label_cost_events
+        ) == pytest.approx(3000.0)  # sparse windows keep lambda_label
+        assert label_cost(
+            20000, segmenter.config.lambda_label, segmenter.config.label_cost_events
+        ) == pytest.approx(12000.0)
         fixed = _segmenter(lambda_label=3000.0, label_cost_events=None)
-        assert fixed._label_cost(1250) == fixed._label_cost(20000) == 3000.0
+        assert (
+            label_cost(1250, fixed.config.lambda_label, fixed.config.label_cost_events)
+            == label_cost(20000, fixed.config.lambda_label, fixed.config.label_cost_events)
+            == 3000.0
+        )
         # The labelling pays the scaled cost: its energy is the returned labels' energy with it.
         events, _, flows = two_layers
         pool = _pool(flows)
