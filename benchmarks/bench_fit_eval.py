@@ -1,10 +1,12 @@
-"""One fit evaluation (a cluster's contrast loss and its gradient) through each fit backend.
+"""One fit evaluation (a cluster's contrast loss and its gradient) by each of its three forms.
 
-The refits and discovery evaluate ``warped_contrast_loss_and_grad`` (``fit_backend: torch``) or its
-compiled loop (``fit_backend: numba``, ``evseg_torch/kernels/fit.py``) a few dozen times per
-window. Each case is one affine4 cluster of a synthetic 30 ms scene (``make_scene``, 180 x 240), its
+The refits and discovery evaluate ``warped_contrast_loss_and_grad`` (the gradient chained by hand; the
+``torch`` backend) or its compiled loop (``evseg_torch/kernels/fit.py``; the ``numba`` backend) a few
+dozen times per window; ``autograd`` is the same loss differentiated by autograd
+(``warped_contrast_loss``, the learning pipelines' form), for comparison. Each case is one affine4
+cluster of a synthetic 30 ms scene (``make_scene``, 180 x 240), its
 events subsampled to ``n``, evaluated in the whole sensor or in a crop around a corner of the scene (as
-discovery's regions are); the two backends alternate, ``--repeats`` times each, and the medians are
+discovery's regions are); the three forms alternate, ``--repeats`` times each, and the medians are
 printed in microseconds with their ratio. One torch thread (``--threads``), ``OMP_WAIT_POLICY=PASSIVE``.
 
     OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_fit_eval.py [--repeats 200]
@@ -21,7 +23,11 @@ from evseg_torch.events import EventBatch, to_torch
 from evseg_torch.kernels.fit import loss_and_grad
 from evseg_torch.level_two.image.splat import extent_mask
 from evseg_torch.level_two.image.warp import LinearWarp
-from evseg_torch.level_two.objectives.contrast import MIN_AREA, warped_contrast_loss_and_grad
+from evseg_torch.level_two.objectives.contrast import (
+    MIN_AREA,
+    warped_contrast_loss,
+    warped_contrast_loss_and_grad,
+)
 from evseg_torch.synthetic import make_scene
 
 SIZE = (180, 240)
@@ -53,11 +59,17 @@ def make_case(n_events: int, crop: tuple[int, int] | None):
     seed = -torch.ones(1)
     torch_args = (warp, params, weights, (height, width), "variance", 1.0, 0.375, None)
     mask = extent_mask(torch.as_tensor(extent), (height, width))
-    return (
-        lambda: warped_contrast_loss_and_grad(*torch_args, mask),
-        lambda: loss_and_grad(warp, params, weights, extent, 1.0, 0.375, MIN_AREA, seed),
-        len(chosen),
-    )
+
+    def by_autograd():
+        leaf = params.clone().requires_grad_()
+        loss = warped_contrast_loss(warp, leaf, *torch_args[2:], torch.as_tensor(extent))
+        return loss, torch.autograd.grad(loss.sum(), leaf)[0]
+
+    return {
+        "autograd": by_autograd,
+        "torch": lambda: warped_contrast_loss_and_grad(*torch_args, mask),
+        "numba": lambda: loss_and_grad(warp, params, weights, extent, 1.0, 0.375, MIN_AREA, seed),
+    }, len(chosen)
 
 
 def main() -> None:
@@ -69,20 +81,23 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s); medians of {args.repeats}, µs")
-    print(f"{'case':<30} {'events':>7} {'torch':>9} {'numba':>9} {'numba/torch':>12}")
+    print(
+        f"{'case':<30} {'events':>7} {'autograd':>9} {'torch':>9} {'numba':>9} "
+        f"{'torch/autograd':>15} {'numba/torch':>12}"
+    )
     for label, n_events, crop in CASES:
-        by_torch, by_numba, n = make_case(n_events, crop)
-        by_numba()  # compiles (or loads the compiled loop) once
-        times = {"torch": [], "numba": []}
+        forms, n = make_case(n_events, crop)
+        forms["numba"]()  # compiles (or loads the compiled loop) once
+        times = {name: [] for name in forms}
         for _ in range(args.repeats):
-            for name, run in (("torch", by_torch), ("numba", by_numba)):
+            for name, run in forms.items():
                 start = time.perf_counter()
                 run()
                 times[name].append(time.perf_counter() - start)
         median = {name: statistics.median(values) * 1e6 for name, values in times.items()}
         print(
-            f"{label:<30} {n:>7} {median['torch']:>9.0f} {median['numba']:>9.0f} "
-            f"{median['numba'] / median['torch']:>12.2f}"
+            f"{label:<30} {n:>7} {median['autograd']:>9.0f} {median['torch']:>9.0f} {median['numba']:>9.0f} "
+            f"{median['torch'] / median['autograd']:>15.2f} {median['numba'] / median['torch']:>12.2f}"
         )
 
 

@@ -1,7 +1,6 @@
 """Level two (torch): images of warped events, contrast maximisation and graph-cut event clustering."""
 
 from evseg_torch.level_two.descent.segmenter import (
-    DEFAULT_SOFT_TEMPERATURE,
     GraphCutContrastSegmenter,
     LevelTwoResult,
 )
@@ -22,7 +21,6 @@ from evseg_torch.level_two.solver.cmax import ContrastMaximization
 
 __all__ = [
     "CONTRAST_OBJECTIVES",
-    "DEFAULT_SOFT_TEMPERATURE",
     "ContrastLoss",
     "ContrastMaximization",
     "DataCost",

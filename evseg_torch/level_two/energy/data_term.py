@@ -3,75 +3,52 @@ r"""EMSGC's data term: how well each motion model compensates each event.
 For every model :math:`l` of a pool (EMSGC ``computeDataTermLookUpTables_GMM_undistortion``):
 
 1. warp **all** events of the window with :math:`\theta_l` and build the IWE :math:`I_l` (bilinear
-   voting, Gaussian blur :math:`\sigma = 1`, see :func:`~evseg_torch.level_two.image.splat.splat_events`;
-   level two's ``data_sigma`` is 0.65, a deviation measured in ``docs/objects.md``);
-2. normalise **jointly**: :math:`M = \max_{l, x} I_l(x)`, the largest value over all models' IWEs;
-3. take the negative image :math:`N_l = 255 (1 - I_l / M)`, which is 0 at the sharpest pixel of the pool;
-4. the cost of event :math:`k` under :math:`l` is :math:`N_l` read by bilinear interpolation at the event's
-   warped position :math:`x'_k(\theta_l)`, or 255 where that position is outside the image.
+   voting, Gaussian blur of width ``sigma``, :func:`~evseg_torch.level_two.image.splat.splat_events`);
+2. normalise (below) and take the negative image, 0 at the sharpest value;
+3. the cost of event :math:`k` under :math:`l` is that image read by bilinear interpolation at the
+   event's warped position :math:`x'_k(\theta_l)`, or 255 where that position is outside the image.
 
 Events that a model compensates well land on sharp, bright edges of its IWE and pay little; a fully
-unexplained event pays 255. Normalising each IWE on its own, or building it from one cluster's events only,
-would change the balance against EMSGC's ``lambda_smooth`` (≈ 30–40 per edge) and ``lambda_label`` (8000).
+unexplained event pays 255. The costs stay in ``[0, 255]``, so EMSGC's ranges of ``lambda_smooth`` and
+``lambda_label`` apply.
 
 Normalisations (``normalization``):
 
-* ``"global"``: EMSGC's step 2 above. One bright peak anywhere (a dense, well-focused object) pushes every
-  other event's costs towards 255 and squeezes the differences between models, so the Potts term then
-  decides alone.
-* ``"relative"`` (our default, a deviation from EMSGC): each event's values are divided by its own best
-  value over the pool, floored (below),
-  :math:`D_k(l) = 255 (1 - \min(1, I_l(x'_k) / \max(\max_m I_m(x'_m), F_k)))`. The best model of a
-  well-compensated event costs 0 and the others pay in proportion to how much less sharply they
-  compensate it; events that every model compensates alike (the aperture problem on a striped texture,
-  where two affine fields agree) cost about the same under all and the Potts term labels them by their
-  neighbours; the floor keeps noise and weakly textured events (all values small) from getting large
-  differences out of small absolute ones. With the true models of the synthetic scenes of
-  :func:`~evseg_torch.synthetic.make_scene` (10 seeds, 1–3 objects, ``lambda_smooth`` 30,
-  ``lambda_label`` 8000), one labelling reaches the issue's quality bar (accuracy ≥ 0.9 and every
-  object's IoU ≥ 0.8) on 5 of 10 scenes, against 1 of 10 with ``"global"`` (3 of 10 with the global
-  maximum replaced by the 99th percentile), both without the two refinements below and with the floor
-  at the 90th percentile. The costs stay in ``[0, 255]``, so EMSGC's λ ranges apply.
-* The floor :math:`F_k` (beyond EMSGC, which has no relative term): the larger of the
-  ``floor_quantile`` (0.9) of the best values of the events whose best model is event :math:`k`'s, its
-  *own floor*, and the ``pool_floor_quantile`` (0.75) of all in-image values of the pool. Until the
-  objects issue the floor was the pool's 90th percentile alone: the densest layer then set it, a sparse
-  or weakly textured layer's models differed by a few units per event, and such a layer could lose its
-  label to the label cost beside a dense one (a small scene's background did so from its true model).
-  The own floor scales each layer's events by that layer's own sharpness; the pool floor keeps noise
-  and weak texture (all values small) from getting large differences out of small absolute ones,
-  which a pool floor alone below 0.7 no longer did (spurious clusters). Measured variants:
-  ``docs/objects.md``.
+* ``"global"`` (EMSGC): :math:`D_k(l) = 255 (1 - I_l(x'_k) / M)` with :math:`M = \max_{l, x} I_l(x)`. One
+  bright peak anywhere (a dense, well-focused object) pushes every other event's costs towards 255 and
+  squeezes the differences between models, so the Potts term then decides alone.
+* ``"relative"`` (level two's; a deviation from EMSGC): each event's values are divided by its own best
+  value over the pool, floored: :math:`D_k(l) = 255 (1 - \min(1, I_l(x'_k) / \max(\max_m I_m(x'_m),
+  F_k)))`. An event's best model costs 0 and the others pay in proportion to how much less sharply they
+  compensate it; events that every model compensates alike (the aperture problem) cost about the same
+  under all, and the Potts term labels them by their neighbours. The floor :math:`F_k` is the larger of
+  the ``floor_quantile`` of the best values of the events whose best model is event :math:`k`'s (each
+  layer's events are scaled by that layer's own sharpness, so a sparse layer is not measured against
+  a dense one's) and the ``pool_floor_quantile`` of all in-image values of the pool (noise and weak
+  texture, whose values are all small, get no large differences out of small absolute ones).
 
-Two refinements of EMSGC's construction, off by default here and on in level two:
+Two refinements of EMSGC's construction (level two uses both):
 
-* ``polarity``: one IWE per polarity and model, each event read from its own polarity's image. An edge
-  of the scene emits events of one sign on its leading side, so a wrong model that happens to carry an
-  event onto another layer's edge usually lands it on events of the other sign. On the 10 scenes above
-  it raises the share of events whose cheapest model is their layer's from 0.79 to 0.83 (median).
-* ``margin``: the IWEs extend beyond the sensor, so that an event a model carries out of the sensor's
-  rectangle still lands on the image of its layer's other events. Texture that enters the view during
-  the window sits outside the sensor at the reference time; with no margin (EMSGC) its events cost 255
-  under their own, correct model and tend to join a slower model's cluster in a band along the image
-  border. ``None`` takes the largest overshoot of any warped event, rounded up and capped at an eighth
-  of the larger sensor side (30 px on a DAVIS240: 1000 px/s over a 30 ms window), so spurious fast
-  models cannot inflate the images.
+* ``polarity``: one IWE per polarity and model, each event read from its own polarity's image: a wrong
+  model that carries an event onto another layer's edge usually lands it on events of the other sign.
+* ``margin``: the IWEs extend beyond the sensor, so that an event that its model carries out of the
+  sensor's rectangle (texture entering the view during the window) still lands on its layer's image
+  instead of costing 255 under its own, correct model. ``None`` takes the largest overshoot of any
+  warped event, rounded up and capped at an eighth of the larger sensor side, so spurious fast models
+  cannot inflate the images.
 
-With both, level two alone reaches the quality bar on 8 of these 10 scenes instead of 5
-(``tests/level_two/test_segmenter.py``).
+The defaults are level two's (:class:`~evseg_torch.config.LevelTwoConfig`'s ``data_*`` settings);
+``sigma=1.0, normalization="global", polarity=False, margin=0`` is EMSGC's data term.
 
-Pixel convention: pixel centres sit at integer coordinates, in the splatting and in the lookup alike, so an
-event that votes all its weight into one pixel reads that pixel back. (EMSGC reads half a pixel off its
-votes.) "Outside" means outside the closed rectangle :math:`[0, W - 1] \times [0, H - 1]` of pixel
-centres, where bilinear interpolation would need a pixel beyond the border. No integer rounding is done
-(EMSGC rounds for GCO's integer energies): the graph cut here works in float64.
+Pixel convention: pixel centres sit at integer coordinates, in the splatting and in the lookup alike, so
+an event that votes all its weight into one pixel reads that pixel back (EMSGC reads half a pixel off).
+"Outside" means outside the closed rectangle :math:`[0, W - 1] \times [0, H - 1]` of pixel centres. No
+rounding to integers (EMSGC rounds for GCO's integer energies): the graph cut works in float64.
 
-Speed: where Numba (the optional ``fast`` extra) is installed, the per-polarity images of ``"relative"``
-costs on the CPU (level two's data term) are splatted, blurred and read in one compiled pass per model,
-and their margins and normalisation run as compiled loops (:mod:`~evseg_torch.kernels.data_term`),
-the same costs bit for bit; with a gradient to keep, the tensor code runs.
+On the CPU, the per-polarity ``"relative"`` costs run as compiled loops where
+:mod:`evseg_torch.backend` chooses them (:mod:`~evseg_torch.kernels.data_term`), the same costs bit for
+bit; with a gradient to keep, the tensor code runs. Measurements: ``docs/notes/``.
 """
-
 from __future__ import annotations
 
 import math
@@ -82,6 +59,7 @@ import torch
 from torch import Tensor, nn
 
 from evseg_torch.backend import kernel
+from evseg_torch.config import LevelTwoConfig
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one
 from evseg_torch.level_two.image.splat import extent_mask, read_flat, splat_events
@@ -94,13 +72,6 @@ MAX_COST = 255.0
 
 NORMALIZATIONS = ("global", "relative")
 """Normalisations of the data term (module docstring)."""
-
-OWN_FLOOR_QUANTILE = 0.9
-"""Default quantile of an event's own floor in ``"relative"`` normalisation (module docstring)."""
-
-POOL_FLOOR_QUANTILE = 0.75
-"""Default quantile of the pool's floor in ``"relative"`` normalisation (module docstring)."""
-
 
 def sample_bilinear(
     images: Tensor, xy: Tensor, image_index: Tensor | None = None, extent: Tensor | None = None
@@ -172,13 +143,13 @@ def data_cost(
     events: EventBatch,
     params: Tensor,
     sensor_size: tuple[int, int] | None = None,
-    sigma: float = 1.0,
-    normalization: str = "global",
-    polarity: bool = False,
-    margin: int | None = 0,
+    sigma: float = LevelTwoConfig.data_sigma,
+    normalization: str = LevelTwoConfig.data_normalization,
+    polarity: bool = LevelTwoConfig.data_polarity,
+    margin: int | None = None,
     valid: Tensor | None = None,
-    floor_quantile: float | None = OWN_FLOOR_QUANTILE,
-    pool_floor_quantile: float | None = POOL_FLOOR_QUANTILE,
+    floor_quantile: float | None = LevelTwoConfig.data_floor_quantile,
+    pool_floor_quantile: float | None = LevelTwoConfig.data_pool_floor_quantile,
 ) -> Tensor:
     r"""EMSGC's per-event data cost under each model of a pool, batched over the models and windows.
 
@@ -452,12 +423,12 @@ class DataCost(nn.Module):
         self,
         model: MotionModel,
         sensor_size: tuple[int, int] | None = None,
-        sigma: float = 1.0,
-        normalization: str = "global",
-        polarity: bool = False,
-        margin: int | None = 0,
-        floor_quantile: float | None = OWN_FLOOR_QUANTILE,
-        pool_floor_quantile: float | None = POOL_FLOOR_QUANTILE,
+        sigma: float = LevelTwoConfig.data_sigma,
+        normalization: str = LevelTwoConfig.data_normalization,
+        polarity: bool = LevelTwoConfig.data_polarity,
+        margin: int | None = None,
+        floor_quantile: float | None = LevelTwoConfig.data_floor_quantile,
+        pool_floor_quantile: float | None = LevelTwoConfig.data_pool_floor_quantile,
     ) -> None:
         super().__init__()
         if normalization not in NORMALIZATIONS:

@@ -13,14 +13,14 @@ Weights. EMSGC lists the neighbours of each triangle edge once per triangle, so 
 Delaunay edge (shared by two triangles) counts twice and one across a hull edge once; here that
 multiplicity is the edge weight. A pair found from both of its events is one edge, not two.
 
-Differences from the release, chosen deliberately:
+Differences from EMSGC's code, chosen deliberately:
 
-* The release hands directed lists to GCO, which counts a pair only when the later event lists the
+* EMSGC's code hands directed lists to GCO, which counts a pair only when the later event lists the
   earlier one, i.e. effectively only the "latest at or before" half of the lookup. Here the lookup is
   symmetric (both halves, deduplicated), as the papers describe it; on 30k-event synthetic windows this
-  gives about 1.16 times the release's edge weight (about 4.5 edges per event), so the same
+  gives about 1.16 times EMSGC's edge weight (about 4.5 edges per event), so the same
   ``lambda_smooth`` smooths a little more.
-* Same-pixel temporal neighbours: the release's own-pixel lookup returns the event itself, a self-loop
+* Same-pixel temporal neighbours: EMSGC's own-pixel lookup returns the event itself, a self-loop
   GCO ignores, so it has none. ``temporal_edges=False`` (the default) keeps it so, which keeps EMSGC's
   ``lambda_smooth`` calibrated; ``temporal_edges=True`` adds an edge of weight 1 between consecutive
   events at the same pixel.

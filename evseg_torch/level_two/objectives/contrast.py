@@ -42,10 +42,6 @@ from evseg_torch.level_two.image.variance import centred_variance, iwe_variance,
 from evseg_torch.level_two.image.warp import LinearWarp, area_from, area_gradient
 from evseg_torch.motion import MotionModel
 
-DEFAULT_COLLAPSE_WEIGHT = LevelTwoConfig.collapse_weight
-"""Default exponent γ of the area-element weights of the event-collapse guard (module docstring); the
-refits' setting ``collapse_weight`` of :class:`~evseg_torch.config.LevelTwoConfig`."""
-
 MIN_AREA = 1e-6
 """The area element's floor in the event-collapse votes: folded warps (a <= 0) keep a tiny weight and a
 finite gradient."""
@@ -111,9 +107,9 @@ def contrast_loss(
     weights: Tensor | None = None,
     *,
     sensor_size: tuple[int, int] | None = None,
-    objective: str = "variance",
-    sigma: float = 1.0,
-    collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
+    objective: str = LevelTwoConfig.objective,
+    sigma: float = LevelTwoConfig.sigma,
+    collapse_weight: float = LevelTwoConfig.collapse_weight,
     reference: Tensor | None = None,
 ) -> Tensor:
     r"""Per-cluster negative contrast of the image of each cluster's own warped events.
@@ -293,9 +289,9 @@ def padded_contrast_loss(
     weights: Tensor | None = None,
     *,
     sensor_size: tuple[int, int] | None = None,
-    objective: str = "variance",
-    sigma: float = 1.0,
-    collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
+    objective: str = LevelTwoConfig.objective,
+    sigma: float = LevelTwoConfig.sigma,
+    collapse_weight: float = LevelTwoConfig.collapse_weight,
 ) -> Tensor:
     r""":func:`contrast_loss` of every window of a padded batch at once, padding weighted 0.
 
@@ -399,9 +395,9 @@ class ContrastLoss(nn.Module):
         model: MotionModel,
         sensor_size: tuple[int, int] | None = None,
         *,
-        objective: str = "variance",
-        sigma: float = 1.0,
-        collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
+        objective: str = LevelTwoConfig.objective,
+        sigma: float = LevelTwoConfig.sigma,
+        collapse_weight: float = LevelTwoConfig.collapse_weight,
         reduction: str = "mean",
     ) -> None:
         super().__init__()

@@ -34,14 +34,11 @@ import math
 import torch
 from torch import Tensor, nn
 
+from evseg_torch.config import LevelTwoConfig
 from evseg_torch.errors import ConfigError, ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
-from evseg_torch.level_two.objectives.contrast import (
-    DEFAULT_COLLAPSE_WEIGHT,
-    check_objective,
-    padded_contrast_loss,
-)
+from evseg_torch.level_two.objectives.contrast import check_objective, padded_contrast_loss
 from evseg_torch.motion import MotionModel
 
 __all__ = ["ASSIGNMENT_TOLERANCE", "MultiModelContrastLoss", "multi_model_contrast_loss"]
@@ -62,9 +59,9 @@ def multi_model_contrast_loss(
     params: Tensor,
     *,
     sensor_size: tuple[int, int] | None = None,
-    objective: str = "variance",
-    sigma: float = 1.0,
-    collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
+    objective: str = LevelTwoConfig.objective,
+    sigma: float = LevelTwoConfig.sigma,
+    collapse_weight: float = LevelTwoConfig.collapse_weight,
     balance_weight: float = 0.0,
     reduction: str = "mean",
 ) -> Tensor:
@@ -173,9 +170,9 @@ class MultiModelContrastLoss(nn.Module):
         model: MotionModel,
         sensor_size: tuple[int, int] | None = None,
         *,
-        objective: str = "variance",
-        sigma: float = 1.0,
-        collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
+        objective: str = LevelTwoConfig.objective,
+        sigma: float = LevelTwoConfig.sigma,
+        collapse_weight: float = LevelTwoConfig.collapse_weight,
         balance_weight: float = 0.0,
         reduction: str = "mean",
     ) -> None:

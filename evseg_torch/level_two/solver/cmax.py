@@ -19,13 +19,13 @@ import torch
 from torch import Tensor, nn
 
 from evseg_torch.backend import kernel
+from evseg_torch.config import LevelTwoConfig
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one
 from evseg_torch.level_two.checks import check_padded_batch, check_sensor_size
 from evseg_torch.level_two.image.splat import extent_mask, splat_events
 from evseg_torch.level_two.image.warp import LinearWarp
 from evseg_torch.level_two.objectives.contrast import (
-    DEFAULT_COLLAPSE_WEIGHT,
     MIN_AREA,
     REFERENCE_OBJECTIVES,
     check_objective,
@@ -103,12 +103,12 @@ class ContrastMaximization(nn.Module):
         model: MotionModel,
         sensor_size: tuple[int, int] | None = None,
         *,
-        objective: str = "variance",
-        optimizer: str = "lbfgs",
-        max_iter: int = 20,
-        lr: float | None = None,
-        sigma: float = 1.0,
-        collapse_weight: float = DEFAULT_COLLAPSE_WEIGHT,
+        objective: str = LevelTwoConfig.objective,
+        optimizer: str = LevelTwoConfig.optimizer,
+        max_iter: int = LevelTwoConfig.max_iter,
+        lr: float | None = LevelTwoConfig.lr,
+        sigma: float = LevelTwoConfig.sigma,
+        collapse_weight: float = LevelTwoConfig.collapse_weight,
         tol: float = 1e-6,
     ) -> None:
         super().__init__()

@@ -1,3 +1,5 @@
+import functools
+
 import pytest
 import torch
 
@@ -18,6 +20,12 @@ from evseg_torch.level_two.energy.data_term import (
 from evseg_torch.level_two.image.splat import splat_events
 from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import Affine4, Translation
+
+# EMSGC's data term (images at sigma 1, the global maximum, no polarity, no margin), which these tests
+# check; level two's (the config's, the functions' defaults) where a test gives its settings.
+EMSGC = {"sigma": 1.0, "normalization": "global", "polarity": False, "margin": 0}
+emsgc_cost = functools.partial(data_cost, **EMSGC)
+EmsgcCost = functools.partial(DataCost, **EMSGC)
 
 
 def _edge_events(count=400, flow=(300.0, -100.0), size=(32, 40), seed=0, dtype=torch.float32):
@@ -101,10 +109,10 @@ class TestDataCostBatch:
         params = torch.nn.utils.rnn.pad_sequence(pools, batch_first=True)
         valid = torch.tensor([[True, True, True], [True, True, False], [True, True, True]])
         batch = batch_windows(windows).to(device)
-        cost = data_cost(model, batch, params.to(device), valid=valid.to(device), **kwargs)
+        cost = emsgc_cost(model, batch, params.to(device), valid=valid.to(device), **kwargs)
         assert cost.shape == (3, 400, 3) and cost.device.type == device.type
         for row, (window, pool) in enumerate(zip(windows, pools, strict=True)):
-            alone = data_cost(model, window.to(device), pool.to(device), **kwargs)
+            alone = emsgc_cost(model, window.to(device), pool.to(device), **kwargs)
             own = cost[row, : len(window), : len(pool)]
             torch.testing.assert_close(own, alone, atol=1e-3, rtol=0)
             if device.type == "cpu":
@@ -143,9 +151,9 @@ class TestDataCostBatch:
         kwargs |= {"floor_quantile": floors[0], "pool_floor_quantile": floors[1]}
 
         def costs():
-            found = [data_cost(Translation((32, 40)), batch_windows(windows), params, valid=valid, **kwargs)]
+            found = [emsgc_cost(Translation((32, 40)), batch_windows(windows), params, valid=valid, **kwargs)]
             found += [
-                data_cost(Translation((32, 40)), w, p, **kwargs) for w, p in zip(windows, pools, strict=True)
+                emsgc_cost(Translation((32, 40)), w, p, **kwargs) for w, p in zip(windows, pools, strict=True)
             ]
             pool = torch.tensor(
                 [
@@ -155,7 +163,7 @@ class TestDataCostBatch:
                     [0.0, 0.0, 0.0, 0.0],
                 ]
             )
-            return [*found, data_cost(Affine4((45, 60)), dense, pool, **kwargs)]
+            return [*found, emsgc_cost(Affine4((45, 60)), dense, pool, **kwargs)]
 
         compiled = costs()
         with using_backend("torch"):
@@ -166,7 +174,7 @@ class TestDataCostBatch:
         # With a gradient to keep, the tensor code runs: the costs stay differentiable in the parameters.
         windows, pools = _windows()
         params = pools[0].clone().requires_grad_()
-        cost = data_cost(Translation((32, 40)), windows[0], params, normalization="relative", polarity=True)
+        cost = emsgc_cost(Translation((32, 40)), windows[0], params, normalization="relative", polarity=True)
         cost.sum().backward()
         assert params.grad is not None and torch.isfinite(params.grad).all()
 
@@ -196,21 +204,21 @@ class TestDataCostBatch:
         batch = batch_windows(windows[:2])
         params = torch.nn.utils.rnn.pad_sequence(pools[:2], batch_first=True)
         torch.testing.assert_close(
-            DataCost(model, normalization="relative")(batch, params),
-            data_cost(model, batch, params, normalization="relative"),
+            EmsgcCost(model, normalization="relative")(batch, params),
+            emsgc_cost(model, batch, params, normalization="relative"),
         )
         with pytest.raises(ShapeError, match=r"\(B, K, 2\) with K >= 1 for the translation model and B = 2"):
-            data_cost(model, batch, params[0])
+            emsgc_cost(model, batch, params[0])
         with pytest.raises(ShapeError, match=r"valid must be \(B, K\)"):
-            data_cost(model, batch, params, valid=torch.ones(2, 2, dtype=torch.bool))
+            emsgc_cost(model, batch, params, valid=torch.ones(2, 2, dtype=torch.bool))
         with pytest.raises(ShapeError, match="valid"):
-            data_cost(model, windows[0], pools[0], valid=torch.ones(1, 3, dtype=torch.bool))
+            emsgc_cost(model, windows[0], pools[0], valid=torch.ones(1, 3, dtype=torch.bool))
 
 
 class TestDataCost:
     def test_cardinality_and_range(self):
         events = _edge_events()
-        cost = data_cost(Translation((32, 40)), events, torch.randn(5, 2) * 200)
+        cost = emsgc_cost(Translation((32, 40)), events, torch.randn(5, 2) * 200)
         assert cost.shape == (400, 5)
         assert cost.min() >= 0 and cost.max() <= 255
 
@@ -222,12 +230,12 @@ class TestDataCost:
         )
         expected = _reference(model, events, params, (32, 40), 1.0)
         torch.testing.assert_close(
-            data_cost(model, events, params, sigma=1.0), expected, atol=1e-3, rtol=1e-4
+            emsgc_cost(model, events, params, sigma=1.0), expected, atol=1e-3, rtol=1e-4
         )
 
     def test_true_model_is_cheapest(self):
         events = _edge_events()
-        cost = data_cost(
+        cost = emsgc_cost(
             Translation((32, 40)), events, torch.tensor([[300.0, -100.0], [0.0, 0.0], [-300.0, 0.0]])
         )
         mean = cost.mean(0)
@@ -242,7 +250,7 @@ class TestDataCost:
         pool = torch.tensor([[300.0, -100.0], [375.0, -100.0]])  # 75 px/s over 20 ms: 1.5 px off
 
         def penalty(sigma):
-            cost = data_cost(Translation((32, 40)), events, pool, sigma=sigma, normalization="relative")
+            cost = emsgc_cost(Translation((32, 40)), events, pool, sigma=sigma, normalization="relative")
             return float((cost[:, 1] - cost[:, 0]).mean())
 
         assert penalty(0.7) > 1.3 * penalty(1.0) > 0
@@ -254,8 +262,8 @@ class TestDataCost:
         events = _edge_events()
         model = Translation((32, 40))
         blurry = torch.tensor([[0.0, 0.0]])
-        alone = data_cost(model, events, blurry)
-        together = data_cost(model, events, torch.cat([blurry, torch.tensor([[300.0, -100.0]])]))
+        alone = emsgc_cost(model, events, blurry)
+        together = emsgc_cost(model, events, torch.cat([blurry, torch.tensor([[300.0, -100.0]])]))
         assert alone.min() == 0  # the sharpest pixel of the pool costs nothing
         assert torch.all(together[:, 0] >= alone[:, 0] - 1e-4)
         assert together[:, 0].mean() > alone[:, 0].mean() + 10
@@ -266,17 +274,17 @@ class TestDataCost:
         events = _edge_events()
         model = Translation((32, 40))
         pool = torch.tensor([[300.0, -100.0], [0.0, 0.0], [-300.0, 0.0]])
-        cost = data_cost(model, events, pool, normalization="relative")
+        cost = emsgc_cost(model, events, pool, normalization="relative")
         assert cost.shape == (400, 3) and cost.min() >= 0 and cost.max() <= 255
         # Best values at or above the floor cost 0: at least the sharpest tenth of a model's own events.
         assert (cost.min(1).values == 0).float().mean() >= 0.09
         assert (cost.argmin(1) == 0).float().mean() > 0.9
         # The costs of a model do not depend on how sharp the pool's other images are elsewhere: only
         # each event's own best value (and the floor) counts; two copies of a model cost the same.
-        duplicate = data_cost(model, events, pool[[0, 0]], normalization="relative")
+        duplicate = emsgc_cost(model, events, pool[[0, 0]], normalization="relative")
         torch.testing.assert_close(duplicate[:, 0], duplicate[:, 1])
         with pytest.raises(ConfigError, match="normalization"):
-            data_cost(model, events, pool, normalization="max")
+            emsgc_cost(model, events, pool, normalization="max")
 
     def test_own_floor_scales_each_layer_by_its_own_sharpness(self):
         # A sparse line beside a dense one, each moving on its own. With the pool's 90th percentile
@@ -292,7 +300,7 @@ class TestDataCost:
         model, pool = Translation((32, 80)), torch.tensor([[300.0, -100.0], [-200.0, 50.0]])
 
         def costs(own, pool_floor):
-            return data_cost(
+            return emsgc_cost(
                 model,
                 events,
                 pool,
@@ -314,24 +322,24 @@ class TestDataCost:
     )
     def test_floor_quantiles_are_checked(self, name, value):
         with pytest.raises(ConfigError, match=name):
-            data_cost(Translation((32, 40)), _edge_events(), torch.zeros(1, 2), **{name: value})
+            emsgc_cost(Translation((32, 40)), _edge_events(), torch.zeros(1, 2), **{name: value})
         with pytest.raises(ConfigError, match=name):
-            DataCost(Translation((32, 40)), **{name: value})
+            EmsgcCost(Translation((32, 40)), **{name: value})
 
     @pytest.mark.parametrize("normalization", NORMALIZATIONS)
     def test_empty_window(self, normalization):
         events = EventBatch(torch.zeros(0, 2), torch.zeros(0), torch.zeros(0))
-        cost = data_cost(Translation((8, 8)), events, torch.zeros(2, 2), normalization=normalization)
+        cost = emsgc_cost(Translation((8, 8)), events, torch.zeros(2, 2), normalization=normalization)
         assert cost.shape == (0, 2)
 
     def test_single_pixel_is_free(self):
         events = EventBatch(torch.full((10, 2), 3.0), torch.linspace(0, 0.01, 10), torch.ones(10))
-        cost = data_cost(Translation((8, 8)), events, torch.zeros(1, 2))
+        cost = emsgc_cost(Translation((8, 8)), events, torch.zeros(1, 2))
         torch.testing.assert_close(cost, torch.zeros(10, 1))
 
     def test_outside_costs_255(self):
         events = EventBatch(torch.tensor([[1.0, 1.0], [5.0, 5.0]]), torch.tensor([0.01, 0.01]), torch.ones(2))
-        cost = data_cost(Translation((8, 8)), events, torch.tensor([[500.0, 0.0]]))  # 5 px to the left
+        cost = emsgc_cost(Translation((8, 8)), events, torch.tensor([[500.0, 0.0]]))  # 5 px to the left
         assert cost[0, 0] == 255.0 and cost[1, 0] < 255.0
 
     def test_margin_keeps_events_carried_out_of_the_sensor(self):
@@ -340,16 +348,16 @@ class TestDataCost:
         )
         model = Translation((40, 40))
         left = torch.tensor([[500.0, 0.0]])  # 5 px to the left: the first event lands at x = -4
-        assert data_cost(model, events, left)[0, 0] == 255.0
-        assert data_cost(model, events, left, margin=4)[0, 0] == 0.0
+        assert emsgc_cost(model, events, left)[0, 0] == 255.0
+        assert emsgc_cost(model, events, left, margin=4)[0, 0] == 0.0
         # The automatic margin is the overshoot, 4 px, capped at an eighth of the larger side, 5 px.
         torch.testing.assert_close(
-            data_cost(model, events, left, margin=None), data_cost(model, events, left, margin=4)
+            emsgc_cost(model, events, left, margin=None), emsgc_cost(model, events, left, margin=4)
         )
-        assert data_cost(model, events, left * 10, margin=None)[0, 0] == 255.0
+        assert emsgc_cost(model, events, left * 10, margin=None)[0, 0] == 255.0
         for margin in (-1, 1.5, True):
             with pytest.raises(ConfigError, match="margin"):
-                data_cost(model, events, left, margin=margin)
+                emsgc_cost(model, events, left, margin=margin)
 
     def test_polarity(self):
         model = Translation((32, 40))
@@ -357,8 +365,8 @@ class TestDataCost:
         line = _edge_events()
         for normalization in NORMALIZATIONS:  # events of one polarity make one image, as without
             torch.testing.assert_close(
-                data_cost(model, line, pool, normalization=normalization, polarity=True),
-                data_cost(model, line, pool, normalization=normalization),
+                emsgc_cost(model, line, pool, normalization=normalization, polarity=True),
+                emsgc_cost(model, line, pool, normalization=normalization),
             )
         # A still edge of positive events and a few negative events on it: an event of the other sign
         # lands on a bright pixel of the image of all events but on a dark one of its own polarity's.
@@ -370,8 +378,8 @@ class TestDataCost:
             torch.linspace(0, 0.02, len(edge) + 3),
             torch.cat([torch.ones(len(edge)), -torch.ones(3)]),
         )
-        mixed = data_cost(model, events, pool[:1])
-        split = data_cost(model, events, pool[:1], polarity=True)
+        mixed = emsgc_cost(model, events, pool[:1])
+        split = emsgc_cost(model, events, pool[:1], polarity=True)
         assert mixed[-3:].max() < 10 and split[-3:].min() > 200
 
     def test_gradcheck(self):
@@ -379,45 +387,45 @@ class TestDataCost:
         events = EventBatch(events.xy.clamp(0, 10), events.t, events.p)
         params = torch.tensor([[30.0, -10.0], [5.0, 7.0]], dtype=torch.float64, requires_grad=True)
         model = Translation((12, 14))
-        assert torch.autograd.gradcheck(lambda p: data_cost(model, events, p), (params,), fast_mode=True)
+        assert torch.autograd.gradcheck(lambda p: emsgc_cost(model, events, p), (params,), fast_mode=True)
 
     def test_module(self):
         events = _edge_events()
         model = Translation((32, 40))
         params = torch.randn(3, 2) * 100
         torch.testing.assert_close(
-            DataCost(model, sigma=1.0)(events, params), data_cost(model, events, params)
+            EmsgcCost(model, sigma=1.0)(events, params), emsgc_cost(model, events, params)
         )
-        assert "sigma=1.0" in repr(DataCost(model))
+        assert "sigma=1.0" in repr(EmsgcCost(model))
         torch.testing.assert_close(
-            DataCost(model, normalization="relative")(events, params),
-            data_cost(model, events, params, normalization="relative"),
+            EmsgcCost(model, normalization="relative")(events, params),
+            emsgc_cost(model, events, params, normalization="relative"),
         )
-        module = DataCost(model, normalization="relative", polarity=True, margin=None)
+        module = EmsgcCost(model, normalization="relative", polarity=True, margin=None)
         torch.testing.assert_close(
             module(events, params),
-            data_cost(model, events, params, normalization="relative", polarity=True, margin=None),
+            emsgc_cost(model, events, params, normalization="relative", polarity=True, margin=None),
         )
         assert "polarity=True, margin=None" in repr(module)
 
     def test_device(self, device):
         events = _edge_events()
         params = torch.tensor([[300.0, -100.0], [0.0, 0.0]])
-        expected = data_cost(Translation((32, 40)), events, params)
-        cost = data_cost(Translation((32, 40)), events.to(device), params.to(device))
+        expected = emsgc_cost(Translation((32, 40)), events, params)
+        cost = emsgc_cost(Translation((32, 40)), events.to(device), params.to(device))
         assert cost.device.type == device.type
         torch.testing.assert_close(cost.cpu(), expected, atol=1e-3, rtol=1e-4)
 
     def test_exceptions(self):
         events = _edge_events()
         with pytest.raises(ShapeError, match=r"\(K, 2\)"):
-            data_cost(Translation((32, 40)), events, torch.zeros(2))
+            emsgc_cost(Translation((32, 40)), events, torch.zeros(2))
         with pytest.raises(ShapeError, match=r"\(K, 4\)"):
-            data_cost(Affine4((32, 40)), events, torch.zeros(2, 2))
+            emsgc_cost(Affine4((32, 40)), events, torch.zeros(2, 2))
         with pytest.raises(ShapeError, match="K >= 1"):
-            data_cost(Translation((32, 40)), events, torch.zeros(0, 2))
+            emsgc_cost(Translation((32, 40)), events, torch.zeros(0, 2))
         with pytest.raises(ModelError, match="params hold NaN or inf"):
-            data_cost(Translation((32, 40)), events, torch.tensor([[0.0, float("nan")]]))
+            emsgc_cost(Translation((32, 40)), events, torch.tensor([[0.0, float("nan")]]))
         with pytest.raises(ShapeError, match="images must be"):
             sample_bilinear(torch.zeros(2, 3, 3), torch.zeros(1, 4, 2))
 
