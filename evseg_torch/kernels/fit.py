@@ -1,9 +1,9 @@
-r"""The fits' evaluation as one compiled loop per cluster on the CPU (Numba): the ``numba`` fit backend.
+r"""The fits' evaluation as one compiled loop per cluster on the CPU (Numba).
 
-:func:`~evseg_torch.level_two.objectives.contrast.warped_contrast_loss_and_grad` evaluates a cluster's contrast
-loss and its gradient in a few dozen tensor operations; on the small crops of discovery and the refits
-(a few hundred to a few thousand events, 50 x 30 to 240 x 180 pixels) their calls, not their arithmetic,
-take the time (about 0.7 ms per evaluation, ``docs/speed.md``). :func:`loss_and_grad` computes the
+:func:`~evseg_torch.level_two.objectives.contrast.warped_contrast_loss_and_grad` evaluates a cluster's
+contrast loss and its gradient in a few dozen tensor operations; on the small crops of discovery and
+the refits (a few hundred to a few thousand events, 50 x 30 to 240 x 180 pixels) their calls, not their
+arithmetic, take the time. :func:`loss_and_grad` computes the
 same in one compiled pass per cluster: the warp and the event-collapse votes, the bilinear splat, the
 separable Gaussian blur with zero padding, the variance, and the gradient back through the same steps
 (the blur is symmetric, so its own adjoint). Each cluster's image is only its extent, so a cluster's
@@ -11,7 +11,7 @@ result does not depend on the others in a call (batched equals solo, bit for bit
 and the blur equal the tensor code's bit for bit (fused multiply-adds where torch's kernels use them);
 sums over pixels and events run in float64 over fixed lanes; the rest (the votes' ``pow``, the order of
 the splat's additions) differs by rounding: losses within about 2e-7, gradients within about 3e-5 of
-their largest component (tested, and measured in ``docs/speed.md``).
+their largest component (tested).
 
 Numba is an optional dependency (``pip install 'evseg-torch[fast]'``); this module is imported only
 when :mod:`evseg_torch.backend` chooses it.
