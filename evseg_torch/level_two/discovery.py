@@ -33,6 +33,7 @@ than the background's model: otherwise its fit returns to that model, which the 
 anyway, at the cost of a fit on the whole sensor; where one does, it is a motion hidden in the
 background (an object level one missed), and its fit is how it is found.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple

@@ -27,19 +27,19 @@ proposals of every window that asked for them, in one batched fit; the refits of
 for one, in one batched fit. Each window's result equals its result alone (bit for bit on the CPU with
 one thread). The design in detail: ``docs/design/level_two.md``.
 """
+
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from numbers import Integral
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
 from evseg_torch.config import LevelTwoConfig, replace_settings
-from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
+from evseg_torch.errors import EventFormatError, ShapeError
 from evseg_torch.events import EventBatch, batch_of_one, batch_windows
 from evseg_torch.graphcut.alpha_expansion import alpha_expansion
 from evseg_torch.level_two.checks import check_events, check_labels
@@ -63,6 +63,7 @@ from evseg_torch.level_two.objectives.contrast import contrast_loss
 from evseg_torch.level_two.objects import ObjectPhase
 from evseg_torch.level_two.solver.cmax import ContrastMaximization
 from evseg_torch.motion import MotionModel, make_motion_model
+from evseg_torch.validation import check_integer
 
 __all__ = ["GraphCutContrastSegmenter", "LevelTwoResult"]
 
@@ -264,17 +265,14 @@ class GraphCutContrastSegmenter(nn.Module):
         each = list(rounds) if isinstance(rounds, Sequence) else [rounds] * count
         if len(each) != count:
             raise ShapeError(f"got {count} windows but {len(each)} discovery_rounds")
-        for value in each:
-            if isinstance(value, bool) or not isinstance(value, Integral) or value < 0:
-                raise ConfigError(f"discovery_rounds must be non-negative integers, got {value!r}")
-        return [int(value) for value in each]
+        return [check_integer(value, "discovery_rounds") for value in each]
 
     def contrast_loss(self, events: EventBatch, params: Tensor, labels: Tensor | None = None) -> Tensor:
         r"""Differentiable negative contrast of each cluster's own events under its model.
 
-        This is the refits' objective (:func:`~evseg_torch.level_two.objectives.contrast.contrast_loss` with this
-        segmenter's objective, blur and collapse guard), for training a network that predicts motion
-        parameters.
+        This is the refits' objective (:func:`~evseg_torch.level_two.objectives.contrast.contrast_loss`
+        with this segmenter's objective, blur and collapse guard), for training a network that predicts
+        motion parameters.
 
         Args:
             events: the window's events.

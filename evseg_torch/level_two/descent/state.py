@@ -169,7 +169,8 @@ def start_window(
     config: LevelTwoConfig,
     discovery_rounds: int,
 ) -> WindowState:
-    """A window's graph (:mod:`~evseg_torch.level_two.energy.graph`) and starting point, its inputs checked."""
+    """A window's graph (:mod:`~evseg_torch.level_two.energy.graph`) and starting point, its inputs
+    checked."""
     params = check_params(init_params, events, model)
     labels = None if init_labels is None else check_labels(init_labels, events, params).cpu().numpy()
     if config.site_time_slices is None:

@@ -33,7 +33,8 @@ class Step(Enum):
 
 
 class Outcomes(Protocol):
-    """What :func:`next_step` reads of a window (a :class:`~evseg_torch.level_two.descent.state.WindowState`)."""
+    """What :func:`next_step` reads of a window
+    (a :class:`~evseg_torch.level_two.descent.state.WindowState`)."""
 
     last: Step
     settled: bool

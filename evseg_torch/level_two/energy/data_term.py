@@ -49,10 +49,11 @@ On the CPU, the per-polarity ``"relative"`` costs run as compiled loops where
 :mod:`evseg_torch.backend` chooses them (:mod:`~evseg_torch.kernels.data_term`), the same costs bit for
 bit; with a gradient to keep, the tensor code runs. Measurements: ``docs/notes/``.
 """
+
 from __future__ import annotations
 
 import math
-from numbers import Integral, Real
+from numbers import Real
 
 import numpy as np
 import torch
@@ -65,6 +66,7 @@ from evseg_torch.events import EventBatch, batch_of_one
 from evseg_torch.level_two.image.splat import extent_mask, read_flat, splat_events
 from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import MotionModel
+from evseg_torch.validation import check_integer
 
 __all__ = ["DataCost", "data_cost", "sample_bilinear"]
 
@@ -72,6 +74,7 @@ MAX_COST = 255.0
 
 NORMALIZATIONS = ("global", "relative")
 """Normalisations of the data term (module docstring)."""
+
 
 def sample_bilinear(
     images: Tensor, xy: Tensor, image_index: Tensor | None = None, extent: Tensor | None = None
@@ -310,8 +313,8 @@ def data_cost(
 
 
 def _check_margin(margin) -> None:
-    if margin is not None and (isinstance(margin, bool) or not isinstance(margin, Integral) or margin < 0):
-        raise ConfigError(f"margin must be a non-negative integer or None, got {margin!r}")
+    if margin is not None:
+        check_integer(margin, "margin")
 
 
 def _check_floor_quantiles(own, pool) -> None:

@@ -46,8 +46,9 @@ import cv2
 import numpy as np
 
 from evseg_torch.backend import kernel
-from evseg_torch.errors import ConfigError, ShapeError
+from evseg_torch.errors import ShapeError
 from evseg_torch.events import EVENT_DTYPE, EventBatch, check_sensor_size
+from evseg_torch.validation import check_integer
 
 __all__ = ["event_graph", "pixel_adjacency", "site_graph"]
 
@@ -187,9 +188,7 @@ def site_graph(
         >>> sites.tolist(), edges.tolist(), weights.tolist()
         ([0, 1, 0, 1], [[0, 1]], [3.0])
     """
-    if isinstance(time_slices, bool) or int(time_slices) != time_slices or time_slices < 1:
-        raise ConfigError(f"time_slices must be a positive integer, got {time_slices!r}")
-    slices = int(time_slices)
+    slices = check_integer(time_slices, "time_slices", at_least=1)
     xy, t = _coordinates_and_times(events, t, sensor_size)
     count = xy.shape[0]
     if count < 2:

@@ -89,7 +89,8 @@ def multi_model_contrast_loss(
         :math:`(B,)` with ``"none"`` for a batch, else a scalar; differentiable with respect to
         ``assignments`` and ``params`` (and ``events.xy``). With ``"normalized_variance"`` a cluster
         whose assignments are all 0 has an empty reference image and gives NaN, as in
-        :func:`~evseg_torch.level_two.objectives.contrast.contrast_loss` (softmax outputs are never exactly 0).
+        :func:`~evseg_torch.level_two.objectives.contrast.contrast_loss` (softmax outputs are never
+        exactly 0).
 
     Raises:
         ConfigError: for an unknown objective or reduction, or a negative ``collapse_weight`` or

@@ -1,11 +1,12 @@
 """Contrast maximisation (CMax) of every cluster's motion: :class:`ContrastMaximization`.
 
-Each cluster's parameters minimise its own contrast loss (:mod:`~evseg_torch.level_two.objectives.contrast`) on
-its own gathered events, in a crop around it where it is small (:mod:`~evseg_torch.level_two.solver.crops`),
-through the warp's linear map (:mod:`~evseg_torch.level_two.image.warp`); all clusters of all windows
-of a call are one batched problem of the solvers of :mod:`~evseg_torch.level_two.solver.optimizers`. Each
-evaluation is tensor code (:func:`~evseg_torch.level_two.objectives.contrast.warped_contrast_loss_and_grad`) or, for
-float32 fits on the CPU, one compiled loop per cluster (:mod:`~evseg_torch.kernels.fit`, as
+Each cluster's parameters minimise its own contrast loss
+(:mod:`~evseg_torch.level_two.objectives.contrast`) on its own gathered events, in a crop around it where
+it is small (:mod:`~evseg_torch.level_two.solver.crops`), through the warp's linear map
+(:mod:`~evseg_torch.level_two.image.warp`); all clusters of all windows of a call are one batched problem
+of the solvers of :mod:`~evseg_torch.level_two.solver.optimizers`. Each evaluation is tensor code
+(:func:`~evseg_torch.level_two.objectives.contrast.warped_contrast_loss_and_grad`) or, for float32 fits
+on the CPU, one compiled loop per cluster (:mod:`~evseg_torch.kernels.fit`, as
 :mod:`evseg_torch.backend` chooses).
 """
 
@@ -36,6 +37,7 @@ from evseg_torch.level_two.objectives.contrast import (
 from evseg_torch.level_two.solver.crops import fit_crops, gather_members
 from evseg_torch.level_two.solver.optimizers import adam, lbfgs
 from evseg_torch.motion import MotionModel
+from evseg_torch.validation import check_integer
 
 OPTIMIZERS = ("lbfgs", "adam")
 """The refits' optimisers (:class:`ContrastMaximization`)."""
@@ -123,7 +125,7 @@ class ContrastMaximization(nn.Module):
         self.sensor_size = check_sensor_size(sensor_size or model.sensor_size)
         self.objective = objective
         self.optimizer = optimizer
-        self.max_iter = _checked_max_iter(max_iter)
+        self.max_iter = check_integer(max_iter, "max_iter", at_least=1)
         self.lr = float(lr) if lr is not None else (1.0 if optimizer == "lbfgs" else 0.1)
         self.sigma = float(sigma)
         self.collapse_weight = float(collapse_weight)
@@ -138,7 +140,7 @@ class ContrastMaximization(nn.Module):
         max_iter: int | None = None,
     ) -> Tensor:
         """Refined parameters (class docstring); ``max_iter`` replaces the module's for this call."""
-        max_iter = self.max_iter if max_iter is None else _checked_max_iter(max_iter)
+        max_iter = self.max_iter if max_iter is None else check_integer(max_iter, "max_iter", at_least=1)
         n_params = self.model.n_params
         if not torch.isfinite(init_params).all():
             raise ModelError("init_params hold NaN or inf: every model's parameters must be finite")
@@ -401,9 +403,3 @@ class _FitSet:
             norm,
         )
         return losses, grads / rows.scale
-
-
-def _checked_max_iter(max_iter) -> int:
-    if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 1:
-        raise ConfigError(f"max_iter must be an integer >= 1, got {max_iter}")
-    return int(max_iter)
