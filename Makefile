@@ -6,14 +6,14 @@ STAMP := $(VENV)/.installed
 # Idle OpenMP threads sleep instead of spinning: on a shared 2-core machine spinning threads slow torch 5-50x.
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: install demo test bench lint docs clean
+.PHONY: install demo test bench lint docs figures clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	# The CPU wheel these machines hold; a bare `torch` would pull a multi-GB CUDA build.
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e ".[io,viz,video,fast,dev]"
+	$(PY) -m pip install -q -e ".[io,viz,video,fast,dev,docs]"
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -24,11 +24,16 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -p no:cacheprovider --doctest-modules --nbmake --nbmake-timeout=600 evseg_torch tests notebooks $(PYTEST_ARGS)
 
+# The commands of docs/benchmarks.md, each one's output in docs/_build/benchmarks/ (over an hour).
 bench: $(STAMP)
-	$(PY) benchmarks/run_all.py
+	$(PY) benchmarks/run_docs_commands.py
+
+# The documentation with the API reference, from the docstrings: docs/_build/html/index.html.
+docs: $(STAMP)
+	$(PY) -m sphinx -b html -q docs docs/_build/html
 
 # The README's figures, from the commands printed under them.
-docs: $(STAMP)
+figures: $(STAMP)
 	$(PY) docs/make_figures.py
 
 lint: $(STAMP)
@@ -36,4 +41,4 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check evseg_torch tests benchmarks
 
 clean:
-	rm -rf $(VENV) demo_out *.egg-info
+	rm -rf $(VENV) demo_out *.egg-info docs/_build docs/api

@@ -1,4 +1,4 @@
-"""Regenerate the README's figures from the commands printed beside them (``make docs``).
+"""Regenerate the README's figures from the commands printed beside them (``make figures``).
 
 Every figure in README.md is an image line ``![...](docs/NAME.png)`` followed, within the next
 eight lines (its caption), by the line ``Made by `evseg ...` `` that names the command writing it.

@@ -1,9 +1,17 @@
-"""The README's Python quickstart runs exactly as written."""
+"""The README runs as written: its Python quickstart and learning example, its figures' commands, and every
+`evseg` command it shows (each parses; the cheap ones run)."""
 
+import argparse
+import glob
+import importlib.metadata
 import importlib.util
 import re
+import shlex
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -38,3 +46,121 @@ def test_every_figure_names_the_command_that_makes_it():
     for path, command in commands.items():
         assert (README.parent / path).is_file()
         assert str(Path(path).parent) in command.split()  # the command writes into the figure's folder
+
+
+# Every `evseg ...` line of the README's bash blocks: each parses with the real argument parser (so a flag
+# the README shows exists), and the cheap ones run in a temporary folder.
+
+SHARED = README.parent.parent / "shared"
+# README placeholders this test can write (a small synthetic recording); other inputs that do not exist are
+# only parsed (ROS bags, Prophesee files, EV-IMO sequences, a cluster's paths).
+RECORDING_MS = 60
+
+
+def readme_commands() -> list[list[str]]:
+    """The ``evseg`` command lines of the README's ```bash blocks, as argument lists (comments dropped)."""
+    blocks = re.findall(r"```bash\n(.*?)```", README.read_text(), flags=re.DOTALL)
+    lines = "\n".join(blocks).replace("\\\n", " ").splitlines()
+    return [shlex.split(line, comments=True) for line in lines if line.strip().startswith("evseg ")]
+
+
+def figure_commands() -> list[list[str]]:
+    """The commands under the README's figures (``Made by `evseg ...```), which ``make figures`` runs."""
+    return [shlex.split(command) for command in re.findall(r"Made by `(evseg [^`]+)`", README.read_text())]
+
+
+def evseg_main():
+    """The ``main`` of the ``evseg`` console script, found through its entry point (wherever it lives)."""
+    return importlib.metadata.entry_points(group="console_scripts")["evseg"].load()
+
+
+def evseg_parser():
+    """The command line's argument parser: a ``_parser()`` / ``parser()`` beside ``main``, or None."""
+    module = sys.modules[evseg_main().__module__]
+    for name in ("_parser", "parser", "build_parser", "make_parser"):
+        factory = getattr(module, name, None)
+        if callable(factory):
+            parser = factory()
+            if isinstance(parser, argparse.ArgumentParser):
+                return parser
+    return None
+
+
+def help_flags(words: list[str]) -> set[str]:
+    """The flags ``evseg COMMAND [PROTOCOL] --help`` names, from the console script beside this Python."""
+    script = Path(sys.executable).with_name("evseg")
+    if not script.exists():
+        pytest.skip(f"no evseg console script beside {sys.executable}")
+    commands = [word for word in words[:3] if not word.startswith("-")][:2]
+    out = subprocess.run([str(script), *commands, "--help"], capture_output=True, text=True, check=True)
+    return set(re.findall(r"--[a-z][a-z0-9-]*", out.stdout))
+
+
+def test_readme_shows_commands():
+    commands = readme_commands()
+    shown = {tuple(word for word in argv[1:3] if not word.startswith("-")) for argv in commands}
+    for command in [("demo",), ("simulate",), ("segment",)]:
+        assert any(found[: len(command)] == command for found in shown), command
+    for protocol in ["synthetic", "labelled", "eed", "evimo"]:
+        assert ("evaluate", protocol) in {found[:2] for found in shown}, protocol
+
+
+@pytest.mark.parametrize("argv", readme_commands() + figure_commands(), ids=" ".join)
+def test_readme_command_parses(argv, capsys):
+    parser = evseg_parser()
+    if parser is None:  # no parser to call: every flag must at least be one that `--help` names
+        flags = {word.split("=")[0] for word in argv if word.startswith("--")}
+        assert flags <= help_flags(argv[1:]), sorted(flags - help_flags(argv[1:]))
+        return
+    try:
+        parser.parse_args(argv[1:])
+    except SystemExit as error:
+        raise AssertionError(f"`{' '.join(argv)}` does not parse: {capsys.readouterr().err}") from error
+
+
+def write_recording(folder: Path) -> None:
+    """``recording.txt`` (rpg layout: ``t x y p``, t in seconds) from one synthetic scene."""
+    from evseg_torch.synthetic import make_scene
+
+    events = make_scene(sensor_size=(180, 240), duration=RECORDING_MS / 1000, n_objects=1, rng=3).events
+    table = np.column_stack([events["t"] / 1e6, events["x"], events["y"], events["p"] > 0])
+    np.savetxt(folder / "recording.txt", table, fmt=["%.6f", "%d", "%d", "%d"])
+
+
+def runnable(argv: list[str], folder: Path) -> str | None:
+    """Why a README command is only parsed here, or None when it runs (cheap, and its inputs exist)."""
+    words = argv[1:]
+    if any(word.startswith(("--scheduler", "--workers", "--predictions", "--figures")) for word in words):
+        return "needs a cluster, worker processes, predictions or writes the README's figures"
+    if words[:2] == ["evaluate", "synthetic"]:
+        seeds = words[words.index("--seeds") + 1] if "--seeds" in words else "0-19"
+        return None if "-" not in seeds and "," not in seeds and "--pipeline-seeds" not in words else "long"
+    if words[0] in ("demo", "simulate"):
+        return None
+    if words[0] == "segment":
+        inputs = []
+        for word in words[1:]:
+            if word.startswith("-"):
+                break
+            inputs.append(word)
+        if any("shared" in word for word in inputs):
+            return "reads ../shared/data (covered by tests/test_cli.py)"
+        missing = [word for word in inputs if not glob.glob(str(folder / word))]
+        return f"no {', '.join(missing)} here" if missing else None
+    return "long or needs data absent here (covered by tests of evaluation/)"
+
+
+def test_cheap_readme_commands_run(tmp_path, monkeypatch, capsys):
+    """The README's cheap commands run, in its order, in one folder (``simulate`` writes what ``segment``
+    reads); ``recording.txt`` is a generated 60 ms recording."""
+    monkeypatch.chdir(tmp_path)
+    write_recording(tmp_path)
+    main = evseg_main()
+    ran = []
+    for argv in readme_commands():
+        if runnable(argv, tmp_path) is not None:
+            continue
+        words = [expanded for word in argv[1:] for expanded in (sorted(glob.glob(word)) or [word])]
+        assert main(["--quiet", *words]) == 0, f"`{' '.join(argv)}` failed: {capsys.readouterr().err}"
+        ran.append(words[0])
+    assert {"demo", "simulate", "segment", "evaluate"} <= set(ran), ran
