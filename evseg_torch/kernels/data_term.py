@@ -41,7 +41,8 @@ def polarity_values(
 
     Returns:
         ``(values, inside)``, float32 and bool :math:`(B, K, N)`, as
-        :func:`~evseg_torch.level_two.energy.data_term.sample_bilinear` reads the tensor code's images (0 outside).
+        :func:`~evseg_torch.level_two.energy.data_term.sample_bilinear` reads the tensor code's images
+        (0 outside).
     """
     n_windows, n_models, n_events = warped.shape[:3]
     values = np.empty((n_windows, n_models, n_events), np.float32)
@@ -159,7 +160,8 @@ def relative_costs(
     floor_quantile: float | None,
     pool_floor_quantile: float | None,
 ) -> Tensor:
-    """The "relative" costs of :func:`~evseg_torch.level_two.energy.data_term.data_cost` from its images' values.
+    """The "relative" costs of :func:`~evseg_torch.level_two.energy.data_term.data_cost` from its images'
+    values.
 
     Two compiled passes (each event's best value and owner; the costs) around NumPy's selections of the
     floors, the tensor code's steps in its order.

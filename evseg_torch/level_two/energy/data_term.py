@@ -47,7 +47,9 @@ rounding to integers (EMSGC rounds for GCO's integer energies): the graph cut wo
 
 On the CPU, the per-polarity ``"relative"`` costs run as compiled loops where
 :mod:`evseg_torch.backend` chooses them (:mod:`~evseg_torch.kernels.data_term`), the same costs bit for
-bit; with a gradient to keep, the tensor code runs. Measurements: ``docs/notes/``.
+bit; with a gradient to keep, the tensor code runs. Measurements:
+``docs/notes/2026-12-04-data-term-floor.md``, ``docs/notes/2026-12-04-sharper-data-term.md``,
+``docs/notes/2026-12-07-level-two-rationale.md``.
 """
 
 from __future__ import annotations

@@ -170,7 +170,7 @@ def warp_area_element(model: MotionModel, events: EventBatch, params: Tensor) ->
     r"""Area element ``det(dx'/dx)`` of the warp at each event: 1 keeps areas, near 0 collapses them.
 
     The Jacobian of the warp is taken by forward differences of one pixel, exact for velocity fields
-    that are affine in ``x`` and accurate to O(t |d²v/dx²|) otherwise. Like
+    that are affine in ``x`` and accurate to :math:`O(t \, |\partial^2 v / \partial x^2|)` otherwise. Like
     :func:`~evseg_torch.level_two.image.warp.warp_events`, it relies on the models' ``v(x) = J(x) params``.
 
     Args:

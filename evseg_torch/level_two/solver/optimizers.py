@@ -24,7 +24,8 @@ when :math:`s^\top y > 10^{-10}`, the same stopping tests and budgets), except f
 (:class:`_Search`), a simpler vectorised one than torch's strong-Wolfe search with cubic interpolation:
 a deviation from torch's solver and from EMSGC's.
 
-Its quality against torch's L-BFGS, and the variants measured: ``docs/notes/``.
+Its quality against torch's L-BFGS, and the variants measured:
+``docs/notes/2026-12-03-solver-and-fit-evaluations.md``.
 """
 
 from __future__ import annotations

@@ -323,7 +323,7 @@ class TestContrastMaximization:
             ContrastMaximization(model, optimizer="sgd")
         with pytest.raises(ModelError, match="init_params hold NaN or inf"):
             cmax(events, torch.full((2, 4), float("inf"), dtype=torch.float64))
-        with pytest.raises(ConfigError, match="max_iter must be an integer >= 1, got True"):
+        with pytest.raises(ConfigError, match="max_iter must be an integer of at least 1, got True"):
             ContrastMaximization(model, max_iter=True)
         with pytest.raises(ConfigError, match="unknown contrast objective"):
             ContrastMaximization(model, objective="entropy")
@@ -511,7 +511,7 @@ def test_max_iter_of_one_call():
     model, _, batch, start, weights = _fit_windows()
     fitted = ContrastMaximization(model, max_iter=20)(batch, start, weights, max_iter=3)
     assert torch.equal(fitted, ContrastMaximization(model, max_iter=3)(batch, start, weights))
-    with pytest.raises(ConfigError, match="max_iter must be an integer >= 1"):
+    with pytest.raises(ConfigError, match="max_iter must be an integer of at least 1"):
         ContrastMaximization(model)(batch, start, weights, max_iter=0)
 
 
