@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 # Idle OpenMP threads sleep instead of spinning: on a shared 2-core machine spinning threads slow torch 5-50x.
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: install demo test bench lint docs figures clean
+.PHONY: install demo test test-torch bench lint docs figures clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -23,6 +23,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -p no:cacheprovider --doctest-modules --nbmake --nbmake-timeout=600 evseg_torch tests notebooks $(PYTEST_ARGS)
+
+# Level two and the pipeline once more on the tensor and NumPy code alone (no compiled kernel): the path
+# of a machine without Numba, and of a GPU (evseg_torch.backend).
+test-torch: $(STAMP)
+	EVSEG_BACKEND=torch $(PY) -m pytest -p no:cacheprovider -q tests/level_two tests/kernels tests/graphcut tests/test_pipeline.py $(PYTEST_ARGS)
 
 # The commands of docs/benchmarks.md, each one's output in docs/_build/benchmarks/ (over an hour).
 bench: $(STAMP)
