@@ -1,4 +1,5 @@
-"""Result folders: the README's schema table against the files written, load_results, the video."""
+"""Result folders: the documented schema (docs/output_files.md) against the files written, load_results,
+the video."""
 
 import json
 import re
@@ -16,11 +17,12 @@ from evseg_torch.motion import MOTION_MODELS
 from evseg_torch.viz import PALETTE
 
 README = Path(__file__).resolve().parents[1] / "README.md"
+SCHEMA = README.parent / "docs" / "output_files.md"
 
 
 def documented_fields() -> dict[str, set[str]]:
-    """File -> field names of the README's "Output files" table (backticked names in the field column)."""
-    section = README.read_text().split("## Output files", 1)[1].split("\n## ", 1)[0]
+    """File -> field names of the schema's table (backticked names in the field column)."""
+    section = SCHEMA.read_text()
     fields: dict[str, set[str]] = {}
     for line in section.splitlines():
         cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
@@ -42,7 +44,7 @@ def result_folder(tmp_path_factory):
     return root / "out" / "scene_0000"
 
 
-def test_readme_documents_every_field_written(result_folder):
+def test_schema_documents_every_field_written(result_folder):
     documented = documented_fields()
     with np.load(result_folder / "labels.npz") as data:
         assert set(data.files) == documented["labels.npz"]
@@ -55,15 +57,15 @@ def test_readme_documents_every_field_written(result_folder):
     assert {"images/NNNNNN.png", "video.mp4"} <= set(documented)
 
 
-def test_readme_documents_the_demo_metrics(tmp_path):
+def test_schema_documents_the_demo_metrics(tmp_path):
     assert main(["--quiet", "demo", "--out", str(tmp_path)]) == 0
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert set(metrics) == documented_fields()["metrics.json"]
     assert all(isinstance(value, int | float) for key, value in metrics.items() if key != "timings_ms")
 
 
-def test_readme_documents_each_motion_models_parameters():
-    text = README.read_text()
+def test_schema_documents_each_motion_models_parameters():
+    text = SCHEMA.read_text()
     for name, model in MOTION_MODELS.items():
         row = next(line for line in text.splitlines() if line.startswith(f"| `{name}`"))
         assert re.findall(r"`([^`]+)`", row.split("|")[2]) == list(model.param_names)
