@@ -55,6 +55,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from evseg_torch.config import FeatureConfig
 from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
 from evseg_torch.event_images import event_counts
 from evseg_torch.events import EVENT_DTYPE, check_sensor_size
@@ -155,10 +156,10 @@ def event_image(xy, sensor_size: tuple[int, int]) -> np.ndarray:
 def detect_corners(
     image,
     *,
-    max_corners: int = 500,
-    min_distance: int = 2,
-    quality_level: float = 0.001,
-    sigma: float = 1.0,
+    max_corners: int = FeatureConfig.max_corners,
+    min_distance: int = FeatureConfig.min_distance,
+    quality_level: float = FeatureConfig.quality_level,
+    sigma: float = FeatureConfig.corner_sigma,
 ) -> np.ndarray:
     """Shi-Tomasi corners of an image, strongest first.
 
@@ -278,9 +279,9 @@ def track_features(
     image1,
     points,
     *,
-    win_size: tuple[int, int] = (21, 21),
-    max_level: int = 3,
-    fb_threshold: float = 0.25,
+    win_size: tuple[int, int] = (FeatureConfig.lk_win_size, FeatureConfig.lk_win_size),
+    max_level: int = FeatureConfig.lk_max_level,
+    fb_threshold: float = FeatureConfig.fb_threshold,
     max_iterations: int = 30,
     epsilon: float = 0.01,
     initial=None,
@@ -360,17 +361,17 @@ def extract_correspondences(
     events: np.ndarray,
     sensor_size: tuple[int, int],
     *,
-    sub_window: float = 1.0 / 3.0,
+    sub_window: float = FeatureConfig.sub_window,
     sub_window_ms: float | None = None,
     t_ref: int | None = None,
-    max_corners: int = 500,
-    min_distance: int = 2,
-    quality_level: float = 0.001,
-    sigma: float = 1.0,
-    win_size: tuple[int, int] = (21, 21),
-    max_level: int = 3,
-    fb_threshold: float = 0.25,
-    both_images: bool = True,
+    max_corners: int = FeatureConfig.max_corners,
+    min_distance: int = FeatureConfig.min_distance,
+    quality_level: float = FeatureConfig.quality_level,
+    sigma: float = FeatureConfig.corner_sigma,
+    win_size: tuple[int, int] = (FeatureConfig.lk_win_size, FeatureConfig.lk_win_size),
+    max_level: int = FeatureConfig.lk_max_level,
+    fb_threshold: float = FeatureConfig.fb_threshold,
+    both_images: bool = FeatureConfig.both_images,
     motion: MotionModel | None = None,
     initial_models=None,
 ) -> Correspondences:

@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import maxflow
 import numpy as np
 
+from evseg_torch.config import LevelOneConfig
 from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.graphcut.alpha_expansion import PottsGraph, potts_graph
 from evseg_torch.level_one.neighborhood import adjacency, neighborhood_graph
@@ -161,7 +162,14 @@ class Correspondences:
 
     @classmethod
     def build(
-        cls, src, dst, dt, model: MotionModel, *, neighborhood_ball_radius: float = 15.0, neighbors=None
+        cls,
+        src,
+        dst,
+        dt,
+        model: MotionModel,
+        *,
+        neighborhood_ball_radius: float = LevelOneConfig.neighborhood_ball_radius,
+        neighbors=None,
     ) -> Correspondences:
         """Validate correspondences and build the neighbourhood graph (``neighbors`` overrides it).
 
@@ -266,7 +274,7 @@ class _Scoring:
     threshold: float
     compound: np.ndarray | None
     exponent: float
-    quality: str = "progressive_x"
+    quality: str
 
     def __call__(self, pref: np.ndarray) -> np.ndarray:
         if self.compound is None:
@@ -339,7 +347,7 @@ def run_gc_ransac(
     compound_preference: np.ndarray | None,
     scoring_exponent: float,
     rng: np.random.Generator,
-    quality: str = "progressive_x",
+    quality: str,
 ):
     """:func:`gc_ransac` on validated :class:`Correspondences` (Progressive-X calls it repeatedly)."""
     m = data.model.min_samples
@@ -390,8 +398,8 @@ def check_fitting_parameters(
     spatial_coherence_weight,
     max_iters,
     min_iters=0,
-    scoring_exponent=1,
-    quality="progressive_x",
+    scoring_exponent,
+    quality,
 ) -> None:
     """Raise :class:`ConfigError` naming the first out-of-range robust-fitting parameter."""
     if not threshold > 0:
@@ -419,16 +427,16 @@ def gc_ransac(
     dt,
     model: MotionModel,
     *,
-    threshold: float = 1.5,
-    conf: float = 0.95,
-    spatial_coherence_weight: float = 0.14,
-    neighborhood_ball_radius: float = 15.0,
+    threshold: float = LevelOneConfig.threshold,
+    conf: float = LevelOneConfig.conf,
+    spatial_coherence_weight: float = LevelOneConfig.spatial_coherence_weight,
+    neighborhood_ball_radius: float = LevelOneConfig.neighborhood_ball_radius,
     neighbors=None,
-    max_iters: int = 1000,
+    max_iters: int = LevelOneConfig.max_iters,
     min_iters: int = 20,
     compound_preference=None,
-    scoring_exponent: float = 1,
-    quality: str = "progressive_x",
+    scoring_exponent: float = LevelOneConfig.scoring_exponent,
+    quality: str = LevelOneConfig.quality,
     rng=None,
 ):
     """Robustly fit one motion model to feature correspondences with GC-RANSAC.

@@ -49,6 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from evseg_torch.config import LevelOneConfig
 from evseg_torch.errors import ConfigError
 from evseg_torch.graphcut.alpha_expansion import alpha_expansion
 from evseg_torch.level_one.gc_ransac import (
@@ -189,24 +190,25 @@ def progressive_x(
     dt,
     model: MotionModel,
     *,
-    threshold: float = 1.5,
-    conf: float = 0.95,
-    spatial_coherence_weight: float = 0.14,
-    neighborhood_ball_radius: float = 15.0,
-    maximum_tanimoto_similarity: float = 0.5,
-    max_iters: int = 1000,
-    minimum_point_number: int = 10,
-    maximum_model_number: int = -1,
-    scoring_exponent: float = 1,
-    quality: str = "progressive_x",
+    threshold: float = LevelOneConfig.threshold,
+    conf: float = LevelOneConfig.conf,
+    spatial_coherence_weight: float = LevelOneConfig.spatial_coherence_weight,
+    neighborhood_ball_radius: float = LevelOneConfig.neighborhood_ball_radius,
+    maximum_tanimoto_similarity: float = LevelOneConfig.maximum_tanimoto_similarity,
+    max_iters: int = LevelOneConfig.max_iters,
+    minimum_point_number: int = LevelOneConfig.minimum_point_number,
+    maximum_model_number: int = LevelOneConfig.maximum_model_number,
+    scoring_exponent: float = LevelOneConfig.scoring_exponent,
+    quality: str = LevelOneConfig.quality,
     initial_models=None,
     rng=None,
 ) -> ProgressiveXResult:
     """Find every motion among feature correspondences and label each correspondence with one of them.
 
-    Parameter names follow pyprogressivex; the defaults are chosen for Lucas-Kanade tracks in pixels
-    over 15-35 ms windows (100-300 tracks on a 240x180 or 346x260 sensor), not copied from
-    pyprogressivex, whose defaults suit homographies (see the method reference, pitfall 8).
+    Parameter names follow pyprogressivex; the defaults are :class:`~evseg_torch.config.LevelOneConfig`'s,
+    chosen for Lucas-Kanade tracks in pixels over 15-35 ms windows (100-300 tracks on a 240x180 or
+    346x260 sensor), not copied from pyprogressivex, whose defaults suit homographies (see the method
+    reference, pitfall 8).
 
     Args:
         src: feature positions at the earlier time, :math:`(N, 2)` pixels.
@@ -227,9 +229,11 @@ def progressive_x(
             while accepting a small object next to the background.
         max_iters: cap on GC-RANSAC's minimal samples per proposal (pyprogressivex's 1000).
         minimum_point_number: fewest inliers of an instance; also PEARL's label cost and the level
-            of the termination bound. 10 (pyprogressivex's) rather than the C++ 20: a small moving
-            object often carries only 10-30 tracks, and an instance must still save ``10 / (1 - w)``
-            data cost to pay its label, far more than random outlier tracks support.
+            of the termination bound. 4 rather than pyprogressivex's 10 or the C++ 20: a small moving
+            object often carries only a few tracks, and in the cascade level two's label cost prunes
+            the weak models that a low minimum lets through; alone, level one is better served by 10,
+            where an instance must save ``10 / (1 - w)`` data cost to pay its label, far more than
+            random outlier tracks support.
         maximum_model_number: stop at this many instances; ``-1`` for no limit.
         scoring_exponent: power of the support a proposal shares with the compound model in the
             ``"progressive_x"`` quality; unused by ``"paper"``. 1 rather than Progressive-X's code's

@@ -60,3 +60,8 @@ def make_scene(
     truth = np.concatenate([truth, np.full(n_outliers, -1)])
     order = rng.permutation(len(src))
     return model, src[order], dst[order], np.full(len(src), dt), truth[order], params
+
+
+# Level one tested alone: an instance needs 10 tracks (pyprogressivex's minimum). The pipeline's default,
+# the config's 4, leaves weak models to level two's label cost.
+ALONE = {"minimum_point_number": 10}
