@@ -59,6 +59,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from evseg_torch.backend import kernel
 from evseg_torch.errors import EvsegError, ShapeError
+from evseg_torch.validation import check_integer
 
 __all__ = [
     "ExpansionResult",
@@ -349,9 +350,7 @@ def potts_graph(edges, edge_weights=None, *, n_nodes: int, reorder: bool = True)
         >>> alpha_expansion(np.array([[0.0, 2.0], [2.0, 0.0], [0.0, 2.0]]), graph, smoothness=3.0).labels
         array([0, 0, 0])
     """
-    if isinstance(n_nodes, bool) or not isinstance(n_nodes, int | np.integer) or n_nodes < 0:
-        raise GraphCutError(f"n_nodes must be a non-negative integer, got {n_nodes!r}")
-    n_nodes = int(n_nodes)
+    n_nodes = check_integer(n_nodes, "n_nodes", error=GraphCutError)
     return PottsGraph(n_nodes, _layout(n_nodes, *_edge_arrays(edges, edge_weights, n_nodes), reorder=reorder))
 
 
@@ -533,8 +532,7 @@ def alpha_expansion(
         array([0, 0, 0])
     """
     problem = _prepare(unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost)
-    if isinstance(max_cycles, bool) or not isinstance(max_cycles, int | np.integer) or max_cycles < 0:
-        raise GraphCutError(f"max_cycles must be a non-negative integer, got {max_cycles!r}")
+    max_cycles = check_integer(max_cycles, "max_cycles", error=GraphCutError)
     if init_labels is None:
         labels = np.argmin(problem.unary, axis=1)
     else:

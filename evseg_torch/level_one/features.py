@@ -60,6 +60,7 @@ from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
 from evseg_torch.event_images import event_counts
 from evseg_torch.events import EVENT_DTYPE, check_sensor_size
 from evseg_torch.motion import MotionModel
+from evseg_torch.validation import check_integer
 
 __all__ = [
     "Correspondences",
@@ -196,10 +197,8 @@ def _detect_corners(
     images: np.ndarray, max_corners: int, min_distance: int, quality_level: float, sigma: float
 ) -> list[np.ndarray]:
     """:func:`detect_corners` of a stack of images :math:`(B, H, W)`, scored in one batched kornia call."""
-    if int(max_corners) < 1:
-        raise ConfigError(f"max_corners must be at least 1, got {max_corners}")
-    if int(min_distance) < 1:
-        raise ConfigError(f"min_distance must be at least 1 pixel, got {min_distance}")
+    max_corners = check_integer(max_corners, "max_corners", at_least=1)
+    min_distance = check_integer(min_distance, "min_distance", at_least=1)
     if not 0.0 <= quality_level < 1.0:
         raise ConfigError(f"quality_level must lie in [0, 1), got {quality_level}")
     if not sigma >= 0.0:
@@ -226,7 +225,7 @@ def _detect_corners(
     # of the best, so it orders ties and nothing else, while its steps stay resolvable in float64.
     ramp = np.arange(height * width, 0, -1, dtype=np.float64).reshape(height, width)
     ramp *= 1e-9 / (height * width)
-    side = 2 * int(min_distance) + 1
+    side = 2 * min_distance + 1
     corners = []
     for score in scores:
         best = float(score.max())
@@ -238,7 +237,7 @@ def _detect_corners(
         peaks = score == cv2.dilate(score, np.ones((side, side), np.uint8))
         peaks &= score > best * max(quality_level, 1e-6)
         rows, cols = np.nonzero(peaks)
-        order = np.argsort(-score[rows, cols], kind="stable")[: int(max_corners)]
+        order = np.argsort(-score[rows, cols], kind="stable")[:max_corners]
         corners.append(np.column_stack([cols[order], rows[order]]).astype(np.float64))
     return corners
 
@@ -322,11 +321,10 @@ def track_features(
         raise ShapeError(f"points must be (N, 2), got shape {src.shape}")
     if not fb_threshold > 0.0:
         raise ConfigError(f"fb_threshold must be positive, got {fb_threshold}")
-    if int(max_level) < 0 or int(max_iterations) < 1 or not epsilon > 0.0:
-        raise ConfigError(
-            "need max_level >= 0, max_iterations >= 1 and epsilon > 0, "
-            f"got {max_level}, {max_iterations} and {epsilon}"
-        )
+    max_level = check_integer(max_level, "max_level")
+    max_iterations = check_integer(max_iterations, "max_iterations", at_least=1)
+    if not epsilon > 0.0:
+        raise ConfigError(f"epsilon must be positive, got {epsilon}")
     guess = None
     if initial is not None:
         guess = np.asarray(initial, dtype=np.float64)
@@ -334,8 +332,8 @@ def track_features(
             raise ShapeError(f"initial must be finite guesses of shape {src.shape}, got shape {guess.shape}")
     if src.shape[0] == 0:
         return Tracks(src, src.copy(), np.zeros(0, dtype=bool))
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iterations), float(epsilon))
-    lk = {"winSize": tuple(int(v) for v in win_size), "criteria": criteria, "maxLevel": int(max_level)}
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, max_iterations, float(epsilon))
+    lk = {"winSize": tuple(int(v) for v in win_size), "criteria": criteria, "maxLevel": max_level}
     if guess is not None:
         lk["flags"] = cv2.OPTFLOW_USE_INITIAL_FLOW
     start = src.astype(np.float32).reshape(-1, 1, 2)

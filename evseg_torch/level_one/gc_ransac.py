@@ -48,6 +48,7 @@ from evseg_torch.errors import ConfigError, ModelError, ShapeError
 from evseg_torch.graphcut.alpha_expansion import PottsGraph, potts_graph
 from evseg_torch.level_one.neighborhood import adjacency, neighborhood_graph
 from evseg_torch.motion.base import MotionModel
+from evseg_torch.validation import check_integer
 
 __all__ = ["QUALITIES", "gc_ransac", "graph_cut_inliers", "iteration_bound", "preference"]
 
@@ -408,8 +409,9 @@ def check_fitting_parameters(
         raise ConfigError(f"conf must lie in (0, 1), got {conf}")
     if not 0 <= spatial_coherence_weight <= 1:
         raise ConfigError(f"spatial_coherence_weight must lie in [0, 1], got {spatial_coherence_weight}")
-    if not 1 <= max_iters or not 0 <= min_iters <= max_iters:
-        raise ConfigError(f"need 0 <= min_iters <= max_iters, 1 <= max_iters; got {min_iters}, {max_iters}")
+    check_integer(max_iters, "max_iters", at_least=1)
+    if check_integer(min_iters, "min_iters") > max_iters:
+        raise ConfigError(f"min_iters must be at most max_iters, got {min_iters} and {max_iters}")
     if not scoring_exponent > 0:
         raise ConfigError(f"scoring_exponent must be positive, got {scoring_exponent}")
     check_quality(quality)

@@ -60,6 +60,7 @@ from evseg_torch.level_one.gc_ransac import (
     run_gc_ransac,
 )
 from evseg_torch.motion.base import MotionModel
+from evseg_torch.validation import check_integer
 
 __all__ = ["OUTLIER", "ProgressiveXResult", "pearl", "progressive_x"]
 
@@ -269,8 +270,7 @@ def progressive_x(
     )
     if not 0 <= maximum_tanimoto_similarity <= 1:
         raise ConfigError(f"maximum_tanimoto_similarity must be in [0, 1], got {maximum_tanimoto_similarity}")
-    if minimum_point_number < 0:
-        raise ConfigError(f"minimum_point_number must be non-negative, got {minimum_point_number}")
+    check_integer(minimum_point_number, "minimum_point_number")
     data = Correspondences.build(src, dst, dt, model, neighborhood_ball_radius=neighborhood_ball_radius)
     n_points, sample_size = data.n_points, model.min_samples
     min_inliers = max(sample_size, int(minimum_point_number))
