@@ -13,9 +13,12 @@ The modules take their settings from these sections
 (:meth:`~evseg_torch.level_two.segmenter.GraphCutContrastSegmenter.from_config`), so a module's defaults
 are the config's.
 
-The configs shipped with the package (``default.yaml``, a full listing of these defaults, and the
-datasets' ``eed.yaml`` and ``evimo.yaml``, which list only what they change) are package data, found by
-:func:`bundled_config`.
+Each field's documentation says what it does and, in a clause, why its default; the measurements
+behind the defaults are kept in ``docs/notes/2026-12-07-settings.md``.
+
+The configs shipped with the package (``default.yaml``, a full listing of these defaults, the datasets'
+``eed.yaml`` and ``evimo.yaml`` and the faster ``fast.yaml``, which list only what they change) are
+package data, found by :func:`bundled_config`.
 """
 
 from __future__ import annotations
@@ -157,40 +160,42 @@ class LevelOneConfig(_Section):
     """Progressive-X with GC-RANSAC proposals (:mod:`evseg_torch.level_one.progressive_x`).
 
     Attributes:
-        threshold: inlier-outlier threshold τ in pixels (paper: 1.5); decisions use 1.5 τ.
-        conf: RANSAC confidence μ (paper: 0.95), in (0, 1).
-        spatial_coherence_weight: Potts weight of GC-RANSAC's labelling and of PEARL, in [0, 1].
-        neighborhood_ball_radius: radius of the correspondences' neighbourhood graph, pixels.
-        maximum_tanimoto_similarity: proposals more similar than this to the compound model are rejected.
-        max_iters: maximum RANSAC iterations per proposal.
-        minimum_point_number: minimum inliers of an instance; also PEARL's label cost. 4 by default
-            (level one alone is tested with 10): in the cascade, level two's label cost prunes weak
-            models, so level one should rather propose a small object's motion from a few tracks
-            than lose it. On synthetic seeds 0-39 (3 pipeline seeds each) 10 → 4 raises detection
-            from 0.88 to 0.93 and mean object IoU from 0.76 to 0.80, cluster-count error -0.32 → -0.08.
+        threshold: inlier-outlier threshold τ in pixels of transfer error; decisions use 1.5 τ
+            (paper: 1.5).
+        conf: RANSAC confidence μ of the iteration count and of the termination bound, in (0, 1)
+            (paper: 0.95).
+        spatial_coherence_weight: Potts weight of GC-RANSAC's labelling and of PEARL, in [0, 1]; 0.14 is
+            GC-RANSAC's and Progressive-X's C++ default (pyprogressivex: 0), since an object's tracks
+            cluster in the image.
+        neighborhood_ball_radius: radius of the correspondences' neighbourhood graph, pixels; 15 gives
+            the tracks of a DAVIS window about 6-12 neighbours (pyprogressivex's 200 suits megapixel
+            images).
+        maximum_tanimoto_similarity: proposals more similar than this to the compound model are rejected
+            (Progressive-X: 0.5).
+        max_iters: maximum RANSAC iterations per proposal (pyprogressivex: 1000).
+        minimum_point_number: minimum inliers of an instance; also PEARL's label cost. 4 (pyprogressivex:
+            10; beyond the paper): in the cascade, level two's label cost prunes weak models, so level one
+            should rather propose a small object's motion from a few tracks than lose it.
         maximum_model_number: at most this many instances; -1 means no limit.
         scoring_exponent: exponent of the support shared with the compound model in the
-            ``progressive_x`` proposal quality (pyprogressivex: 2, which buries objects whose motion a
-            strip of background shares); unused by ``paper``.
-        quality: the proposals' compound-model-aware quality. ``progressive_x`` (default):
-            Progressive-X's code, ``sum_i pref_i(h) - (sum_i min(pref_i(h), pref_i(C)))^scoring_exponent``,
-            which is not the paper's Eq. 4; ``paper``: the paper's Eq. 4, i.e.
-            ``sum_i min(pref_i(h), 1 - pref_i(C))`` (:mod:`evseg_torch.level_one.gc_ransac`). Eq. 4
-            proposes fewer spurious models but separates fewer objects: full pipeline, 3 seeds,
-            ``shared/data/synthetic_probe`` IoU 0.704 → 0.689, detection 0.74 → 0.72; synthetic seeds
-            0-19 IoU 0.834 → 0.801, detection 0.96 → 0.92.
+            ``progressive_x`` quality; 1, where Progressive-X's code has 2, which buries objects whose
+            motion a strip of background shares; unused by ``paper``.
+        quality: the proposals' compound-model-aware quality (:mod:`evseg_torch.level_one.gc_ransac`).
+            ``progressive_x`` (default): Progressive-X's code,
+            ``sum_i pref_i(h) - (sum_i min(pref_i(h), pref_i(C)))^scoring_exponent``, which is not the
+            paper's Eq. 4; ``paper``: the paper's Eq. 4, ``sum_i min(pref_i(h), 1 - pref_i(C))``, which
+            proposes fewer spurious models but also separates fewer objects.
         reuse_models: bootstrap each window with the previous window's models (paper Table III).
         initial_models: what models given to the segmenter (a previous window's, or a network's
             proposals) do. ``augment`` (default): level one runs and starts from them, so its pool holds
             them and what it adds; ``replace``: level one does not run and they are level two's pool (a
             stream then runs level one only on its first window, or after a window that kept no model).
         extra_thresholds: inlier thresholds of further Progressive-X runs on the same tracks (same seed,
-            no initial models), whose models join the pool level two starts from (beyond the paper),
-            only in windows that carry no models in (a stream's later windows start from the last one's
-            objects, and there the further pools cost streamed detection). ``[1.25]`` by default, with
-            ``level_two.data_sigma`` 0.65: over pipeline seeds 0-8 against none and 0.7, detection on
-            ``hard`` 0.694 -> 0.739, our own scenes 0.954 -> 0.977, the probe 0.846 -> 0.895, EED and
-            streamed windows equal; cold windows take 1.16-1.30 times as long (``docs/objects.md``).
+            no initial models), whose models join the pool level two starts from (beyond the paper). They
+            run only in windows that carry no models in: a stream's later windows start from the last
+            one's objects, where further pools cost detection. ``[1.25]`` by default, chosen with
+            ``level_two.data_sigma``: a slightly tighter run proposes objects that the first one merges
+            with a neighbour, for a moderate cost in time.
     """
 
     where: ClassVar[str] = "level_one."
@@ -228,31 +233,29 @@ class LevelTwoConfig(_Section):
 
     Attributes:
         lambda_data: weight λ_D of the data term (EMSGC: 1).
-        lambda_smooth: Potts weight λ_P per unit edge weight (EMSGC: 25–43).
+        lambda_smooth: Potts weight λ_P per unit edge weight (EMSGC: 25–43); 30 by default, within
+            EMSGC's values for EED (30–40).
         lambda_label: label cost λ_M per model in use, the MDL term (EMSGC: 8000; 4000 on EED
             occlusions), in windows of up to ``label_cost_events`` events. 6000 by default, chosen with
-            ``data_sigma`` 0.7 (4000 with the data term's sigma of 1): with 8000 an object of ~1000
-            events (5% of a synthetic window) whose level-one model starts ~1.5 px off loses its cluster
-            in the first labelling, before a refit can sharpen it.
-        n_iter_segmentation: outer block-coordinate-descent rounds (EMSGC: 5). 3 by default: over
-            pipeline seeds 0-2 the probe, `hard` and own scenes and EED score within 0.002 of 5 rounds
-            (EED's detection rates equal), and level two takes 0.85 of the time (median per window).
-        n_iter_labeling: α-expansion cycles per labelling (EMSGC: 2; one loses nothing measurable here).
+            ``data_sigma``: a dearer label loses a small object whose level-one model starts a pixel or
+            two off in the first labelling, before a refit can sharpen it.
+        n_iter_segmentation: outer block-coordinate-descent rounds (EMSGC: 5); 3 by default, which score
+            as 5 do in less time.
+        n_iter_labeling: α-expansion cycles per labelling (EMSGC: 2); 1 by default, as a second cycle
+            changes next to nothing.
         sigma: Gaussian width of the images of warped events in the refits and discovery, pixels
             (EMSGC: 1).
         data_sigma: Gaussian width of the data term's images of warped events, pixels (EMSGC: 1, as its
-            refits'; a deviation). 0.65 by default (with ``level_one.extra_thresholds`` [1.25]; 0.7 before
-            it), with ``lambda_label`` 6000: a sharper image tells
-            apart motions a pixel or two apart over the window (two touching objects, an object and a
-            compromise model that also holds its neighbour), and the larger label cost keeps the
-            background's slightly imprecise model from splitting for it. Over pipeline seeds 0-8, against
-            1.0 with 4000: probe detection 0.839 -> 0.894, `hard` 0.681 -> 0.694, own scenes 0.958 ->
-            0.949, EED equal (``docs/objects.md``).
+            refits'; beyond the paper). 0.65 by default, with ``lambda_label`` 6000 and
+            ``level_one.extra_thresholds`` [1.25]: a sharper image tells apart motions a pixel or two
+            apart over the window (two touching objects, an object and a compromise model that also holds
+            its neighbour), and the larger label cost keeps the background's slightly imprecise model from
+            splitting for it (``docs/objects.md``).
         objective: contrast objective of the refits, a key of
             :data:`~evseg_torch.level_two.contrast.CONTRAST_OBJECTIVES` (EMSGC: ``variance``).
         collapse_weight: exponent γ of the refits' event-collapse guard
-            (:func:`~evseg_torch.level_two.contrast.contrast_loss`); 0 switches it off (EMSGC's plain
-            objective).
+            (:func:`~evseg_torch.level_two.contrast.contrast_loss`; beyond the paper); 0 switches it off
+            (EMSGC's plain objective).
         optimizer: ``lbfgs`` (batched L-BFGS of :mod:`~evseg_torch.level_two.solver`) or ``adam``.
         max_iter: optimiser iterations of the first refit, which starts from the initial pool.
         warm_max_iter: iterations of each later refit, which starts from the previous refit's models
@@ -263,19 +266,20 @@ class LevelTwoConfig(_Section):
         temporal_edges: also join consecutive events at the same pixel in the graph (EMSGC: no).
         data_normalization: ``relative`` (each event's image value divided by its best over the pool,
             floored at a quantile of the pool's values) or ``global`` (EMSGC: divided by the global
-            maximum). Relative separates layers far better on our scenes; see
+            maximum). ``relative`` (beyond the paper) separates layers far better on our scenes; see
             :mod:`evseg_torch.level_two.data_term`.
         data_floor_quantile: in ``relative`` normalisation, the quantile, in (0, 1], of the best values
             of the events whose best model is an event's own that floors its best value, so that each
-            layer's events are scaled by that layer's own sharpness (``null``: no such floor).
+            layer's events are scaled by that layer's own sharpness (``null``: no such floor; beyond the
+            paper).
         data_pool_floor_quantile: in ``relative`` normalisation, the quantile, in (0, 1], of all in-image
             values of the pool that floors every event's best value, so that noise and weak texture do
-            not get large differences from small values (``null``: none; 0.9 alone was the floor before
-            the objects issue).
+            not get large differences from small values (``null``: none; beyond the paper).
         data_polarity: read each event's data cost from the image of its own polarity's warped events
-            (EMSGC: one image of all events).
+            (beyond the paper; EMSGC: one image of all events).
         refit_max_events: each refit sees an evenly spaced subsample of at most this many events per
-            cluster (``None``: all); models fitted on 4000 events are as good and several times faster.
+            cluster (``None``: all, as in EMSGC); models fitted on 4000 events are as good and several
+            times faster.
         label_tol: stop the outer iterations once at most this fraction of labels changed, in [0, 1)
             (EMSGC: 0).
         site_time_slices: graph-cut sites are the events of one pixel within one of this many time slices
@@ -293,13 +297,13 @@ class LevelTwoConfig(_Section):
             :mod:`evseg_torch.level_two.segmenter` and :mod:`evseg_torch.level_two.discovery`.
         carried_discovery_rounds: the pipeline's discovery rounds, at most ``discovery_rounds``, in a window
             that carries models in (a stream's windows after its first, or given ``initial_models``): they
-            start from objects that the windows before split and joined already, and there a second round
-            cost streamed detection (``docs/objects.md``). Level two alone uses ``discovery_rounds``.
+            start from objects that the windows before split and joined already, where a second round
+            costs streamed detection (``docs/objects.md``). Level two alone uses ``discovery_rounds``.
         discovery_min_events: fewest events of a region that gets a proposed model.
         discovery_residual_cost: also propose models for connected events whose own model's data cost is
-            at least this (of 255); ``None`` for none. With the ``relative`` data term most background
-            events of a sparse window cost that much, so on the synthetic probe scenes every threshold
-            tried (128–240; 150 and 200 again with ``data_sigma`` 0.7) lowered detection.
+            at least this (of 255); ``None`` (default) for none: with the ``relative`` data term most
+            background events of a sparse window cost that much, and every threshold tried lowered
+            detection.
         discovery_radius: pixels by which events reach out when grouped into regions.
         discovery_max_proposals: most models proposed at a time (the largest regions).
         discovery_min_gain: a proposal is kept only if it raises its region's contrast by at least this
@@ -316,8 +320,8 @@ class LevelTwoConfig(_Section):
         object_splits: how many times per window settled clusters are split into their objects.
         soft_temperature: temperature of the per-event soft assignments, a softmax of the negative data
             cost (units of the cost, 0-255; a cost difference of one temperature between two clusters
-            is a factor ``e`` between their probabilities); 20 is calibrated on synthetic scenes (see
-            :data:`~evseg_torch.level_two.segmenter.DEFAULT_SOFT_TEMPERATURE`).
+            is a factor ``e`` between their probabilities; beyond the paper); 20 is calibrated on
+            synthetic scenes (see :data:`~evseg_torch.level_two.segmenter.DEFAULT_SOFT_TEMPERATURE`).
     """
 
     where: ClassVar[str] = "level_two."

@@ -26,21 +26,19 @@ With the previous window's models (a stream, :meth:`CascadedSegmenter.stream`), 
 (:func:`guided_tracks`): each corner starts Lucas-Kanade where the best-matching previous motion takes
 it, without the pyramid, and only corners that no previous motion explains (a new object, a scene
 change) are tracked cold. On consecutive windows this keeps as many tracks as cold tracking, slightly
-more of them right, and the features take 60-70 % of their cold time (``benchmarks/bench_level_one.py``).
+more of them right, in less time (``benchmarks/bench_level_one.py`` times both).
 
 Tracks stay precise while a sub-window smears a corner over a few pixels: with the defaults and a
 30 ms window, up to about 600 px/s; faster motions need a shorter ``sub_window_ms``. The defaults
-(500 corners, more than 2 px apart, quality 0.001) keep every corner a DAVIS240 window offers (about
-300-500 per image on synthetic scenes): small objects need every track they have, and a tight
-forward-backward check (0.25 px), not the corner score, is what rejects the corners of noise. On
-synthetic scenes of 40k events in 30 ms with motions up to 600 px/s, about 92 % of the kept tracks
-end within 1.5 px of where their layer's true motion takes them.
+(:class:`~evseg_torch.config.FeatureConfig`'s: 500 corners, more than 2 px apart, quality 0.001) keep
+every corner a DAVIS240 window offers: small objects need every track they have, and a tight
+forward-backward check (0.25 px), not the corner score, is what rejects the corners of noise.
 
 torch is used only for kornia's corner response; everything else is NumPy and OpenCV. Lucas-Kanade
-takes about three quarters of the time (two images of about 450 corners each, every corner tracked
-there and back), and only about a third of the corners pass the forward-backward check. Tracking fewer
-corners (the strongest, the best few in each cell of a grid, or skipping late corners within 3-4 px of
-a forward track) costs small objects tracks, and level one then finds fewer of them.
+takes most of the time (every corner tracked there and back), and most corners fail the
+forward-backward check; yet tracking fewer corners (the strongest, the best few in each cell of a grid,
+or skipping late corners near a forward track) costs small objects tracks, and level one then finds
+fewer of them.
 """
 
 from __future__ import annotations
@@ -247,7 +245,7 @@ def to_uint8(image, *, sigma: float = 1.0, percentile: float = 99.5) -> np.ndarr
 
     A light Gaussian blur (``cv2.GaussianBlur``) turns the sparse, spiky counts into the smooth
     intensities LK's gradients need; on synthetic scenes, σ = 1 px gives the most precise tracks
-    (σ = 0.7 about 2 % fewer within 1.5 px of the truth, σ = 1.5 a sixth fewer tracks). Counts are
+    (a narrower blur leaves fewer of them right, a wider one fewer of them). Counts are
     then multiplied by ``255 / c``, where ``c`` is the ``percentile`` of the *non-zero* pixels (most
     pixels of an event image are empty, so a percentile over all of them would often be 0), rounded
     and clipped. Normalising each image by its own scale keeps LK's brightness constancy when the
@@ -484,8 +482,8 @@ def extract_correspondences(
     )
 
 
-# A guide that holds for fewer points than this is wrong as a whole. Guided passes keep 15-65 % of the
-# corners of synthetic scenes, about as many as cold passes do.
+# A guide that holds for fewer points than this is wrong as a whole: a guided pass that follows the
+# image's motions keeps about as many corners as a cold pass, far more than this.
 _MIN_GUIDED_FRACTION = 0.05
 
 
@@ -523,9 +521,7 @@ def guided_tracks(
             point is tracked cold.
         patch_radius: half-side in pixels of the compared patches.
         guided_iterations: Lucas-Kanade iterations of the guided pass. From a guess a few pixels off,
-            a handful converge; more only let the tracks of noise wander off and pass the check (on
-            synthetic scenes 6 iterations keep 94 % of the tracks within 1.5 px of the truth, 30 keep
-            92 %).
+            a handful converge; more only let the tracks of noise wander off and pass the check.
         **track: :func:`track_features`' keyword arguments for the cold pass; the guided pass uses
             the same ones without the pyramid.
 

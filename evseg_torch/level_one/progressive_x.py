@@ -24,12 +24,9 @@ Progressive-X counts the points that PEARL leaves outliers, ``N - N_C``. It boun
 compound-model-aware quality of any proposal in both forms: ``sum_i max(0, pref_i(h) - pref_i(C))``
 (Progressive-X's with ``scoring_exponent`` 1) and ``sum_i min(pref_i(h), 1 - pref_i(C))`` (Eq. 4).
 So the loop goes on while a proposal could still score like an instance of the minimum size.
-``N - N_C`` does not: PEARL's Potts term pulls nearly every track into an instance (in 23 of the 24
-scenes of ``shared/data/synthetic_probe`` no track was left an outlier), so it fell to 0 as soon as
-one instance covered two objects whose motions differ by a few pixels, and the proposal that splits
-them was never made. On those scenes, of the layers with 8 or more tracks whose motion is 3.5-5 px
-(over the 30 ms window) from the nearest other layer's, 9 of 15 got an instance of their own with
-``N - N_C`` and 13 with ``U``.
+``N - N_C`` does not: PEARL's Potts term pulls nearly every track into an instance, so it falls to 0
+as soon as one instance covers two objects whose motions differ by a few pixels, and the proposal that
+splits them is never made; with ``U`` close objects more often get instances of their own.
 
 ``k`` counts the RANSAC iterations since the instances last changed, not since the start as in
 Progressive-X's code: samples drawn before an instance was accepted were scored against another
