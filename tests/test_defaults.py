@@ -58,10 +58,15 @@ DEFAULTS = [
 # Modules whose public callables must all be rows of DEFAULTS when a keyword default of theirs is named
 # like a config field.
 MODULES = [
+    "evseg_torch.level_one.corners",
     "evseg_torch.level_one.features",
     "evseg_torch.level_one.gc_ransac",
+    "evseg_torch.level_one.images",
+    "evseg_torch.level_one.inliers",
+    "evseg_torch.level_one.lucas_kanade",
     "evseg_torch.level_one.neighborhood",
     "evseg_torch.level_one.progressive_x",
+    "evseg_torch.level_one.sampling",
     "evseg_torch.motion",
     "evseg_torch.tracking",
 ]
@@ -133,9 +138,11 @@ def test_every_default_named_like_a_field_has_a_row():
     fields = {f.name for section in sections for f in dataclasses.fields(section)}
     listed = {row.function for row in DEFAULTS}
     missing = sorted(
-        f"{function.__module__}.{function.__qualname__}({', '.join(sorted(shared))})"
-        for module in MODULES
-        for function in _public_callables(module)
-        if (shared := set(_keyword_defaults(function)) & fields) and function not in listed
+        {
+            f"{function.__module__}.{function.__qualname__}({', '.join(sorted(shared))})"
+            for module in MODULES
+            for function in _public_callables(module)
+            if (shared := set(_keyword_defaults(function)) & fields) and function not in listed
+        }
     )
     assert not missing, f"add these to DEFAULTS: {missing}"
