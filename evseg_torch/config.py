@@ -1,386 +1,64 @@
 """Hyper-parameters as nested frozen dataclasses, loaded strictly from YAML.
 
-Every hyper-parameter of the pipeline is defined once, here: its default, its documentation and its
-validation. Names follow EMSGC (``lambda_smooth``, ``lambda_label``, ``n_iter_segmentation``) and
-pyprogressivex (``threshold``, ``conf``, ``minimum_point_number``). Field names are unique across
-sections, so a flat keyword such as ``lambda_smooth=40`` names exactly one field (:func:`replace_config`).
+Every hyper-parameter of the pipeline is defined once: its default, its documentation and its
+validation, in the sections of :mod:`evseg_torch.config_sections` (:class:`SegmenterConfig` and the
+sections it holds), which are imported from here. Names follow EMSGC (``lambda_smooth``,
+``lambda_label``, ``n_iter_segmentation``) and pyprogressivex (``threshold``, ``conf``,
+``minimum_point_number``). Field names are unique across sections, so a flat keyword such as
+``lambda_smooth=40`` names exactly one field (:func:`replace_config`).
 
 Each section validates itself when it is built (``__post_init__``), from YAML, from keywords or by
 :func:`dataclasses.replace`: a field's type (a bool is not an integer; a float must be finite), its range
-(``_setting``'s bounds) and its choices; an integer given for a float field becomes a float. Unknown keys,
-in files or in keywords, and invalid values are :class:`~evseg_torch.errors.ConfigError` naming the key.
-The modules take their settings from these sections
-(:meth:`~evseg_torch.level_two.descent.segmenter.GraphCutContrastSegmenter.from_config`), so a module's defaults
-are the config's.
+(:func:`~evseg_torch.config_fields.setting`'s bounds) and its choices; an integer given for a float field
+becomes a float. Unknown keys, in files or in keywords, and invalid values are
+:class:`~evseg_torch.errors.ConfigError` naming the key (:mod:`evseg_torch.config_fields`). The modules
+take their settings and their defaults from these sections
+(:meth:`~evseg_torch.level_two.descent.segmenter.GraphCutContrastSegmenter.from_config`; the functions'
+defaults are the fields' own), so a module's defaults are the config's.
 
-The configs shipped with the package (``default.yaml``, a full listing of these defaults, and the
-datasets' ``eed.yaml`` and ``evimo.yaml``, which list only what they change) are package data, found by
-:func:`bundled_config`.
+Each field's documentation says what it does and, in a clause, why its default; the measurements
+behind the defaults are kept in ``docs/notes/2026-12-07-settings.md``.
+
+This module reads and writes configs: YAML files (:func:`load_config`, :func:`dump_config`), nested
+dicts (:func:`config_from_dict`, :func:`config_to_dict`) and flat replacements (:func:`replace_config`).
+The configs shipped with the package (``default.yaml``, a full listing of these defaults, the datasets'
+``eed.yaml`` and ``evimo.yaml`` and the faster ``fast.yaml``, which list only what they change) are
+package data, found by :func:`bundled_config`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import importlib.resources
-import math
-import operator
-import types
 import typing
-from dataclasses import dataclass, field
-from numbers import Integral, Real
 from pathlib import Path
-from typing import ClassVar, NamedTuple
 
 import yaml
 
+from evseg_torch.config_sections import (
+    FeatureConfig,
+    LevelOneConfig,
+    LevelTwoConfig,
+    SegmenterConfig,
+    WindowConfig,
+)
 from evseg_torch.errors import ConfigError
 
-
-class _Names(NamedTuple):
-    """The names an implementation registers (a module's tuple or dict), looked up when a value is
-    validated: the modules import this one, so it cannot import them first."""
-
-    module: str
-    attribute: str
-
-    def names(self) -> tuple[str, ...]:
-        return tuple(getattr(importlib.import_module(self.module), self.attribute))
-
-
-def _setting(
-    default,
-    *,
-    above: float | None = None,
-    at_least: float | None = None,
-    below: float | None = None,
-    at_most: float | None = None,
-    choices: tuple[str, ...] | _Names | None = None,
-):
-    """A config field: its default and the bounds or choices its value must meet (``None``, where the
-    field allows it, meets all of them)."""
-    limits = {"above": above, "at_least": at_least, "below": below, "at_most": at_most, "choices": choices}
-    return field(default=default, metadata={k: v for k, v in limits.items() if v is not None})
-
-
-class _Section:
-    """Validation shared by every config section: each field's type, finiteness, range and choices."""
-
-    where: ClassVar[str] = ""
-
-    def __post_init__(self) -> None:
-        hints = typing.get_type_hints(type(self))
-        for spec in dataclasses.fields(self):
-            key = f"{self.where}{spec.name}"
-            value, hint = getattr(self, spec.name), hints[spec.name]
-            if dataclasses.is_dataclass(hint):
-                if not isinstance(value, hint):
-                    raise ConfigError(
-                        f"config key {key!r} must be a {hint.__name__}, got {type(value).__name__}"
-                    )
-                continue
-            value = _coerce(value, hint, key)
-            if value is not None:
-                _check_limits(value, spec.metadata, key)
-            object.__setattr__(self, spec.name, value)
-
-
-@dataclass(frozen=True)
-class WindowConfig(_Section):
-    """How a recording is cut into windows.
-
-    Attributes:
-        window_ms: window length in milliseconds (the paper uses 15–35 ms).
-        stride_ms: step between window starts; ``None`` means ``window_ms`` (no overlap).
-        events_per_window: if set, windows hold this many events instead of a fixed duration.
-        min_events: windows with fewer events are reported as empty rather than segmented.
-    """
-
-    where: ClassVar[str] = "window."
-
-    window_ms: float = _setting(30.0, above=0)
-    stride_ms: float | None = _setting(None, above=0)
-    events_per_window: int | None = _setting(None, at_least=1)
-    min_events: int = _setting(200, at_least=0)
-
-
-@dataclass(frozen=True)
-class FeatureConfig(_Section):
-    """Level one's corners and Lucas-Kanade tracks (:mod:`evseg_torch.level_one.features`).
-
-    Attributes:
-        sub_window: length of the early and late event images, as a fraction of the window, in (0, 0.5].
-        max_corners: at most this many Shi-Tomasi corners.
-        min_distance: minimum distance between corners in pixels.
-        quality_level: corners weaker than this fraction of the strongest response are dropped.
-        corner_sigma: Gaussian smoothing of the event images before the corner response, pixels.
-        lk_win_size: Lucas-Kanade window side in pixels (OpenCV needs at least 3).
-        lk_max_level: pyramid levels of Lucas-Kanade.
-        fb_threshold: forward-backward round-trip error above which a track is dropped, pixels.
-        both_images: detect corners on the late image too and track them backwards, as the paper does.
-        guided_tracking: when a previous window's models are reused, start Lucas-Kanade where they
-            take each corner, without the pyramid; corners that none of them explains are tracked
-            cold (:func:`~evseg_torch.level_one.features.guided_tracks`).
-    """
-
-    where: ClassVar[str] = "features."
-
-    sub_window: float = _setting(1.0 / 3.0, above=0, at_most=0.5)
-    max_corners: int = _setting(500, at_least=1)
-    min_distance: int = _setting(2, at_least=1)
-    quality_level: float = _setting(0.001, at_least=0, below=1)
-    corner_sigma: float = _setting(1.0, at_least=0)
-    lk_win_size: int = _setting(21, at_least=3)
-    lk_max_level: int = _setting(3, at_least=0)
-    fb_threshold: float = _setting(0.25, above=0)
-    both_images: bool = True
-    guided_tracking: bool = True
-
-    def correspondence_settings(self) -> dict:
-        """The keywords of :func:`~evseg_torch.level_one.features.extract_correspondences` that this
-        section sets (``guided_tracking`` decides whether the pipeline also gives it the models)."""
-        return {
-            "sub_window": self.sub_window,
-            "max_corners": self.max_corners,
-            "min_distance": self.min_distance,
-            "quality_level": self.quality_level,
-            "sigma": self.corner_sigma,
-            "win_size": (self.lk_win_size, self.lk_win_size),
-            "max_level": self.lk_max_level,
-            "fb_threshold": self.fb_threshold,
-            "both_images": self.both_images,
-        }
-
-
-@dataclass(frozen=True)
-class LevelOneConfig(_Section):
-    """Progressive-X with GC-RANSAC proposals (:mod:`evseg_torch.level_one.progressive_x`).
-
-    Attributes:
-        threshold: inlier-outlier threshold τ in pixels (paper: 1.5); decisions use 1.5 τ.
-        conf: RANSAC confidence μ (paper: 0.95), in (0, 1).
-        spatial_coherence_weight: Potts weight of GC-RANSAC's labelling and of PEARL, in [0, 1].
-        neighborhood_ball_radius: radius of the correspondences' neighbourhood graph, pixels.
-        maximum_tanimoto_similarity: proposals more similar than this to the compound model are rejected.
-        max_iters: maximum RANSAC iterations per proposal.
-        minimum_point_number: minimum inliers of an instance; also PEARL's label cost. 4 by default
-            (level one alone is tested with 10): in the cascade, level two's label cost prunes weak
-            models, so level one should rather propose a small object's motion from a few tracks
-            than lose it. On synthetic seeds 0-39 (3 pipeline seeds each) 10 → 4 raises detection
-            from 0.88 to 0.93 and mean object IoU from 0.76 to 0.80, cluster-count error -0.32 → -0.08.
-        maximum_model_number: at most this many instances; -1 means no limit.
-        scoring_exponent: exponent of the support shared with the compound model in the
-            ``progressive_x`` proposal quality (pyprogressivex: 2, which buries objects whose motion a
-            strip of background shares); unused by ``paper``.
-        quality: the proposals' compound-model-aware quality. ``progressive_x`` (default):
-            Progressive-X's code, ``sum_i pref_i(h) - (sum_i min(pref_i(h), pref_i(C)))^scoring_exponent``,
-            which is not the paper's Eq. 4; ``paper``: the paper's Eq. 4, i.e.
-            ``sum_i min(pref_i(h), 1 - pref_i(C))`` (:mod:`evseg_torch.level_one.gc_ransac`). Eq. 4
-            proposes fewer spurious models but separates fewer objects: full pipeline, 3 seeds,
-            ``shared/data/synthetic_probe`` IoU 0.704 → 0.689, detection 0.74 → 0.72; synthetic seeds
-            0-19 IoU 0.834 → 0.801, detection 0.96 → 0.92.
-        reuse_models: bootstrap each window with the previous window's models (paper Table III).
-        initial_models: what models given to the segmenter (a previous window's, or a network's
-            proposals) do. ``augment`` (default): level one runs and starts from them, so its pool holds
-            them and what it adds; ``replace``: level one does not run and they are level two's pool (a
-            stream then runs level one only on its first window, or after a window that kept no model).
-        extra_thresholds: inlier thresholds of further Progressive-X runs on the same tracks (same seed,
-            no initial models), whose models join the pool level two starts from (beyond the paper),
-            only in windows that carry no models in (a stream's later windows start from the last one's
-            objects, and there the further pools cost streamed detection). ``[1.25]`` by default, with
-            ``level_two.data_sigma`` 0.65: over pipeline seeds 0-8 against none and 0.7, detection on
-            ``hard`` 0.694 -> 0.739, our own scenes 0.954 -> 0.977, the probe 0.846 -> 0.895, EED and
-            streamed windows equal; cold windows take 1.16-1.30 times as long (``docs/objects.md``).
-    """
-
-    where: ClassVar[str] = "level_one."
-
-    threshold: float = _setting(1.5, above=0)
-    conf: float = _setting(0.95, above=0, below=1)
-    spatial_coherence_weight: float = _setting(0.14, at_least=0, at_most=1)
-    neighborhood_ball_radius: float = _setting(15.0, above=0)
-    maximum_tanimoto_similarity: float = _setting(0.5, at_least=0, at_most=1)
-    max_iters: int = _setting(1000, at_least=1)
-    minimum_point_number: int = _setting(4, at_least=0)
-    maximum_model_number: int = _setting(-1, at_least=-1)
-    scoring_exponent: float = _setting(1.0, above=0)
-    quality: str = _setting("progressive_x", choices=_Names("evseg_torch.level_one.gc_ransac", "QUALITIES"))
-    reuse_models: bool = True
-    initial_models: str = _setting("augment", choices=("augment", "replace"))
-    extra_thresholds: tuple[float, ...] = _setting((1.25,), above=0)
-
-    def progressive_x_settings(self) -> dict:
-        """The keywords of :func:`~evseg_torch.level_one.progressive_x.progressive_x` that this section
-        sets (all its fields but the pipeline's own ``reuse_models``, ``initial_models`` and
-        ``extra_thresholds``)."""
-        pipeline_only = {"reuse_models", "initial_models", "extra_thresholds"}
-        return {
-            f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in pipeline_only
-        }
-
-
-@dataclass(frozen=True)
-class LevelTwoConfig(_Section):
-    """EMSGC's spatio-temporal graph cut with contrast-maximisation refits (:mod:`evseg_torch.level_two`).
-
-    These are the settings of :class:`~evseg_torch.level_two.descent.segmenter.GraphCutContrastSegmenter`
-    (its keywords, or ``from_config``), defined here only.
-
-    Attributes:
-        lambda_data: weight λ_D of the data term (EMSGC: 1).
-        lambda_smooth: Potts weight λ_P per unit edge weight (EMSGC: 25–43).
-        lambda_label: label cost λ_M per model in use, the MDL term (EMSGC: 8000; 4000 on EED
-            occlusions), in windows of up to ``label_cost_events`` events. 6000 by default, chosen with
-            ``data_sigma`` 0.7 (4000 with the data term's sigma of 1): with 8000 an object of ~1000
-            events (5% of a synthetic window) whose level-one model starts ~1.5 px off loses its cluster
-            in the first labelling, before a refit can sharpen it.
-        n_iter_segmentation: outer block-coordinate-descent rounds (EMSGC: 5). 3 by default: over
-            pipeline seeds 0-2 the probe, `hard` and own scenes and EED score within 0.002 of 5 rounds
-            (EED's detection rates equal), and level two takes 0.85 of the time (median per window).
-        n_iter_labeling: α-expansion cycles per labelling (EMSGC: 2; one loses nothing measurable here).
-        sigma: Gaussian width of the images of warped events in the refits and discovery, pixels
-            (EMSGC: 1).
-        data_sigma: Gaussian width of the data term's images of warped events, pixels (EMSGC: 1, as its
-            refits'; a deviation). 0.65 by default (with ``level_one.extra_thresholds`` [1.25]; 0.7 before
-            it), with ``lambda_label`` 6000: a sharper image tells
-            apart motions a pixel or two apart over the window (two touching objects, an object and a
-            compromise model that also holds its neighbour), and the larger label cost keeps the
-            background's slightly imprecise model from splitting for it. Over pipeline seeds 0-8, against
-            1.0 with 4000: probe detection 0.839 -> 0.894, `hard` 0.681 -> 0.694, own scenes 0.958 ->
-            0.949, EED equal (``docs/objects.md``).
-        objective: contrast objective of the refits, a key of
-            :data:`~evseg_torch.level_two.objectives.contrast.CONTRAST_OBJECTIVES` (EMSGC: ``variance``).
-        collapse_weight: exponent γ of the refits' event-collapse guard
-            (:func:`~evseg_torch.level_two.objectives.contrast.contrast_loss`); 0 switches it off (EMSGC's plain
-            objective).
-        optimizer: ``lbfgs`` (batched L-BFGS of :mod:`~evseg_torch.level_two.solver.optimizers`) or ``adam``.
-        max_iter: optimiser iterations of the first refit, which starts from the initial pool.
-        warm_max_iter: iterations of each later refit, which starts from the previous refit's models
-            (``None``: ``max_iter``).
-        lr: learning rate (Adam) or initial step (L-BFGS) of the refits, in pixels of displacement;
-            ``None`` (default) for the optimiser's own default, 1 for L-BFGS and 0.1 for Adam
-            (:class:`~evseg_torch.level_two.solver.cmax.ContrastMaximization`).
-        temporal_edges: also join consecutive events at the same pixel in the graph (EMSGC: no).
-        data_normalization: ``relative`` (each event's image value divided by its best over the pool,
-            floored at a quantile of the pool's values) or ``global`` (EMSGC: divided by the global
-            maximum). Relative separates layers far better on our scenes; see
-            :mod:`evseg_torch.level_two.energy.data_term`.
-        data_floor_quantile: in ``relative`` normalisation, the quantile, in (0, 1], of the best values
-            of the events whose best model is an event's own that floors its best value, so that each
-            layer's events are scaled by that layer's own sharpness (``null``: no such floor).
-        data_pool_floor_quantile: in ``relative`` normalisation, the quantile, in (0, 1], of all in-image
-            values of the pool that floors every event's best value, so that noise and weak texture do
-            not get large differences from small values (``null``: none; 0.9 alone was the floor before
-            the objects issue).
-        data_polarity: read each event's data cost from the image of its own polarity's warped events
-            (EMSGC: one image of all events).
-        refit_max_events: each refit sees an evenly spaced subsample of at most this many events per
-            cluster (``None``: all); models fitted on 4000 events are as good and several times faster.
-        label_tol: stop the outer iterations once at most this fraction of labels changed, in [0, 1)
-            (EMSGC: 0).
-        site_time_slices: graph-cut sites are the events of one pixel within one of this many time slices
-            of the window (``None``: every event is a site, as in EMSGC); 1 cuts the graph 2-4x smaller
-            (:func:`~evseg_torch.level_two.energy.graph.site_graph`).
-        label_cost_events: the label cost scales with dense windows: a window of N events pays
-            ``lambda_label * max(1, N / label_cost_events)`` per label (``None``: ``lambda_label`` whatever
-            the window, as in EMSGC). The data cost a spurious model saves grows with the events it
-            takes, so dense windows need a dearer label; sparse ones keep ``lambda_label``, which a
-            small object's sharper model can pay.
-        discovery_rounds: how many times per window level two proposes new models (splits of clusters,
-            unions of touching clusters, each fitted by contrast maximisation; the energy decides); 0
-            switches discovery off: the paper's level two, which only prunes. A round after the first
-            proposes only around the clusters the round before created. See
-            :mod:`evseg_torch.level_two.descent.segmenter` and :mod:`evseg_torch.level_two.discovery`.
-        carried_discovery_rounds: the pipeline's discovery rounds, at most ``discovery_rounds``, in a window
-            that carries models in (a stream's windows after its first, or given ``initial_models``): they
-            start from objects that the windows before split and joined already, and there a second round
-            cost streamed detection (``docs/objects.md``). Level two alone uses ``discovery_rounds``.
-        discovery_min_events: fewest events of a region that gets a proposed model.
-        discovery_residual_cost: also propose models for connected events whose own model's data cost is
-            at least this (of 255); ``None`` for none. With the ``relative`` data term most background
-            events of a sparse window cost that much, so on the synthetic probe scenes every threshold
-            tried (128–240; 150 and 200 again with ``data_sigma`` 0.7) lowered detection.
-        discovery_radius: pixels by which events reach out when grouped into regions.
-        discovery_max_proposals: most models proposed at a time (the largest regions).
-        discovery_min_gain: a proposal is kept only if it raises its region's contrast by at least this
-            fraction over the region's own cluster's model (0: it must not lower it).
-        discovery_max_iter: optimiser iterations of each proposal's contrast-maximisation fit.
-        objects: a non-background cluster is one object (beyond the paper; see
-            :mod:`evseg_torch.level_two.objects`): each label pays ``object_support_cost`` per event
-            compensated outside its support, and settled clusters of separate object groups are split;
-            ``false`` gives the paper's clusters, one per motion.
-        object_support_cost: data-cost units (of 255) an event pays for a non-background label whose
-            support its compensated position misses.
-        object_radius: pixels by which compensated events reach out when grouped into objects.
-        object_support_radius: pixels by which a label's support extends beyond its grouped events.
-        object_splits: how many times per window settled clusters are split into their objects.
-        soft_temperature: temperature of the per-event soft assignments, a softmax of the negative data
-            cost (units of the cost, 0-255; a cost difference of one temperature between two clusters
-            is a factor ``e`` between their probabilities); 20 is calibrated on synthetic scenes (see
-            :data:`~evseg_torch.level_two.descent.segmenter.DEFAULT_SOFT_TEMPERATURE`).
-    """
-
-    where: ClassVar[str] = "level_two."
-
-    lambda_data: float = _setting(1.0, at_least=0)
-    lambda_smooth: float = _setting(30.0, at_least=0)
-    lambda_label: float = _setting(6000.0, at_least=0)
-    n_iter_segmentation: int = _setting(3, at_least=1)
-    n_iter_labeling: int = _setting(1, at_least=1)
-    sigma: float = _setting(1.0, at_least=0)
-    data_sigma: float = _setting(0.65, at_least=0)
-    objective: str = _setting(
-        "variance", choices=_Names("evseg_torch.level_two.objectives.contrast", "CONTRAST_OBJECTIVES")
-    )
-    collapse_weight: float = _setting(0.375, at_least=0)
-    optimizer: str = _setting("lbfgs", choices=_Names("evseg_torch.level_two.solver.cmax", "OPTIMIZERS"))
-    max_iter: int = _setting(6, at_least=1)
-    warm_max_iter: int | None = _setting(3, at_least=1)
-    lr: float | None = _setting(None, above=0)
-    temporal_edges: bool = False
-    data_normalization: str = _setting(
-        "relative", choices=_Names("evseg_torch.level_two.energy.data_term", "NORMALIZATIONS")
-    )
-    data_floor_quantile: float | None = _setting(0.9, above=0, at_most=1)
-    data_pool_floor_quantile: float | None = _setting(0.75, above=0, at_most=1)
-    data_polarity: bool = True
-    refit_max_events: int | None = _setting(4000, at_least=1)
-    label_tol: float = _setting(0.002, at_least=0, below=1)
-    site_time_slices: int | None = _setting(1, at_least=1)
-    label_cost_events: float | None = _setting(15000.0, above=0)
-    discovery_rounds: int = _setting(2, at_least=0)
-    carried_discovery_rounds: int = _setting(1, at_least=0)
-    discovery_min_events: int = _setting(100, at_least=1)
-    discovery_residual_cost: float | None = _setting(None, at_least=0, at_most=255)
-    discovery_radius: int = _setting(2, at_least=0)
-    discovery_max_proposals: int = _setting(8, at_least=1)
-    discovery_min_gain: float = _setting(0.0, at_least=0)
-    discovery_max_iter: int = _setting(20, at_least=1)
-    soft_temperature: float = _setting(20.0, above=0)
-    objects: bool = True
-    object_support_cost: float = _setting(64.0, at_least=0)
-    object_radius: int = _setting(5, at_least=0)
-    object_support_radius: int = _setting(6, at_least=0)
-    object_splits: int = _setting(2, at_least=0)
-
-
-@dataclass(frozen=True)
-class SegmenterConfig(_Section):
-    """Everything :class:`~evseg_torch.pipeline.CascadedSegmenter` needs.
-
-    Attributes:
-        motion_model: ``translation``, ``affine4`` (the paper's) or ``rotation3d``.
-        focal: ``(fx, fy)`` for ``rotation3d``; ``None`` means ``max(H, W)``.
-        seed: seed of every random choice, so runs are reproducible.
-    """
-
-    motion_model: str = _setting("affine4", choices=_Names("evseg_torch.motion", "MOTION_MODELS"))
-    focal: tuple[float, float] | None = _setting(None, above=0)
-    seed: int = _setting(0, at_least=0)
-    window: WindowConfig = field(default_factory=WindowConfig)
-    features: FeatureConfig = field(default_factory=FeatureConfig)
-    level_one: LevelOneConfig = field(default_factory=LevelOneConfig)
-    level_two: LevelTwoConfig = field(default_factory=LevelTwoConfig)
+__all__ = [
+    "FeatureConfig",
+    "LevelOneConfig",
+    "LevelTwoConfig",
+    "SegmenterConfig",
+    "WindowConfig",
+    "bundled_config",
+    "config_from_dict",
+    "config_to_dict",
+    "dump_config",
+    "load_config",
+    "replace_config",
+    "replace_settings",
+    "shipped_configs",
+]
 
 
 def _configs_folder():
@@ -499,80 +177,6 @@ def replace_config(config: SegmenterConfig, **overrides) -> SegmenterConfig:
         if values:
             top[section] = dataclasses.replace(top.get(section, getattr(config, section)), **values)
     return dataclasses.replace(config, **top)
-
-
-def _coerce(value, hint, key: str):
-    """``value`` as the type ``hint`` names (an int for a float field becomes a float; a list of a
-    tuple field a tuple), or a ConfigError naming ``key``."""
-    options = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
-    if value is None:
-        if type(None) in options:
-            return None
-        raise ConfigError(f"config key {key!r} must not be null")
-    errors = []
-    for option in options:
-        if option is type(None):
-            continue
-        try:
-            return _coerce_one(value, option)
-        except (TypeError, ValueError) as err:
-            errors.append(str(err))
-    raise ConfigError(f"config key {key!r} has invalid value {value!r}: {'; '.join(errors)}")
-
-
-def _coerce_one(value, hint):
-    if typing.get_origin(hint) is tuple:
-        kinds = typing.get_args(hint)
-        any_length = kinds[-1] is Ellipsis  # tuple[X, ...]
-        if not isinstance(value, list | tuple) or not (any_length or len(value) == len(kinds)):
-            raise TypeError("expected a list" if any_length else f"expected a list of {len(kinds)} values")
-        kinds = (kinds[0],) * len(value) if any_length else kinds
-        return tuple(_coerce_one(v, k) for v, k in zip(value, kinds, strict=True))
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise TypeError("expected true or false")
-        return value
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, Integral):
-            raise TypeError("expected an integer")
-        return int(value)
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, Real):
-            raise TypeError("expected a number")
-        if not math.isfinite(value):
-            raise ValueError("expected a finite number")
-        return float(value)
-    if hint is str:
-        if not isinstance(value, str):
-            raise TypeError("expected a string")
-        return value
-    raise TypeError(f"unsupported type {hint}")
-
-
-_BOUNDS = {
-    "above": (">", operator.gt),
-    "at_least": (">=", operator.ge),
-    "below": ("<", operator.lt),
-    "at_most": ("<=", operator.le),
-}
-
-
-def _check_limits(value, limits, key: str) -> None:
-    """Check a coerced value (each element of a tuple) against a field's bounds and choices."""
-    if "choices" in limits:
-        choices = limits["choices"]
-        choices = choices.names() if isinstance(choices, _Names) else choices
-        if value not in choices:
-            listed = ", ".join(map(repr, choices))
-            raise ConfigError(f"config key {key!r} has invalid value {value!r}: expected one of {listed}")
-    bounds = [(_BOUNDS[name], bound) for name, bound in limits.items() if name in _BOUNDS]
-    for element in value if isinstance(value, tuple) else (value,):
-        if not all(holds(element, bound) for (_, holds), bound in bounds):
-            wanted = " and ".join(f"{symbol} {bound:g}" for (symbol, _), bound in bounds)
-            noun = "integer" if isinstance(element, int) else "number"
-            positive = {("above", 0), ("at_least", 1)} & set(limits.items())
-            kind = f"a positive {noun}" if positive else {"integer": "an integer", "number": "a number"}[noun]
-            raise ConfigError(f"config key {key!r} has invalid value {value!r}: expected {kind} {wanted}")
 
 
 def _plain(value):

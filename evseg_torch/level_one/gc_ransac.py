@@ -34,19 +34,24 @@ model of :mod:`evseg_torch.motion`, as in the paper's Sec. IV-A and Algorithm 1:
 Hypotheses are generated and scored in batches, all residuals of a batch in one matrix product:
 every model here is a linear velocity field, ``dst - src = dt J(src) theta``, so the residuals of K
 hypotheses are ``b - A @ params.T`` with ``A = dt J(src)`` stacked once per call.
+
+The validated correspondences and NAPSAC's samples live in :mod:`~evseg_torch.level_one.sampling`, the
+preference and the graph-cut inlier labelling in :mod:`~evseg_torch.level_one.inliers`; this module
+holds the RANSAC loop and re-exports them.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import maxflow
 import numpy as np
 
-from evseg_torch.errors import ConfigError, ModelError, ShapeError
-from evseg_torch.graphcut.alpha_expansion import PottsGraph, potts_graph
-from evseg_torch.level_one.neighborhood import adjacency, neighborhood_graph
+from evseg_torch.config import LevelOneConfig
+from evseg_torch.errors import ConfigError, ShapeError
+from evseg_torch.level_one.inliers import graph_cut_inliers, preference
+from evseg_torch.level_one.sampling import Correspondences
 from evseg_torch.motion.base import MotionModel
+from evseg_torch.validation import check_integer
 
 __all__ = ["QUALITIES", "gc_ransac", "graph_cut_inliers", "iteration_bound", "preference"]
 
@@ -65,22 +70,6 @@ MAX_LEAST_SQUARES_ITERATIONS = 10
 SAMPLING_FLOOR = 0.05
 
 
-def preference(sq_residuals, threshold: float) -> np.ndarray:
-    """Truncated-quadratic preference ``max(0, 1 - r^2 / (1.5 threshold)^2)`` of points for models.
-
-    It is each point's MSAC score for a model, Progressive-X's preference vector entry, and positive
-    exactly for the inliers at the truncated threshold ``1.5 * threshold``.
-
-    Args:
-        sq_residuals: squared transfer errors in px^2, any shape.
-        threshold: inlier threshold ``tau`` in pixels.
-
-    Returns:
-        Preferences in ``[0, 1]``, same shape.
-    """
-    return np.clip(1.0 - np.asarray(sq_residuals) / (1.5 * threshold) ** 2, 0.0, None)
-
-
 def iteration_bound(inlier_ratio: float, sample_size: int, conf: float) -> float:
     """RANSAC's iteration count ``log(1 - conf) / log(1 - eta^m)`` for confidence ``conf``.
 
@@ -91,168 +80,6 @@ def iteration_bound(inlier_ratio: float, sample_size: int, conf: float) -> float
         return 0.0
     miss = np.log1p(-hit)
     return float(np.log1p(-conf) / miss) if miss < 0 else float("inf")
-
-
-def graph_cut_inliers(
-    sq_residuals, edges, *, threshold: float, spatial_coherence_weight: float
-) -> np.ndarray:
-    """Spatially coherent inlier/outlier labelling of one model by an s-t minimum cut (GC-RANSAC).
-
-    With ``d_i = r_i^2 / (1.5 tau)^2`` and ``w`` the spatial coherence weight, a point inside the
-    truncated threshold (``d_i < 1``) pays ``(1 - w)(1 - d_i)`` for being labelled an outlier, one
-    outside pays ``(1 - w) d_i`` for being labelled an inlier; every neighbour pair pays ``w`` if
-    labelled differently and ``w (min(d_i, 1) + min(d_j, 1)) / 2`` if both are outliers (GC-RANSAC's
-    energy). The pair term is submodular, so one minimum cut gives the exact optimum. With ``w = 0``
-    this is plain thresholding at ``1.5 tau``.
-
-    Args:
-        sq_residuals: squared residuals of the points under the model, :math:`(N,)`.
-        edges: neighbourhood graph :math:`(E, 2)`, each pair once.
-        threshold: inlier threshold ``tau`` in pixels.
-        spatial_coherence_weight: ``w`` in ``[0, 1]``.
-
-    Returns:
-        Boolean inlier mask :math:`(N,)`.
-    """
-    ratio = np.asarray(sq_residuals, dtype=np.float64) / (1.5 * threshold) ** 2
-    distance = np.minimum(ratio, 1.0)
-    n_points = ratio.shape[0]
-    weight = float(spatial_coherence_weight)
-    # Linear cost of labelling a point inlier rather than outlier; the pair terms are rewritten as
-    # E(x_i, x_j) = E00 + (E10 - E00) x_i + (E11 - E10) x_j + (E01 + E10 - E00 - E11)(1 - x_i) x_j.
-    linear = (1.0 - weight) * np.where(ratio < 1.0, ratio - 1.0, ratio)
-    tail, head = edges[:, 0], edges[:, 1]
-    both_out = 0.5 * weight * (distance[tail] + distance[head])
-    linear += np.bincount(tail, weights=weight - both_out, minlength=n_points)
-    linear -= np.bincount(head, minlength=n_points) * weight
-    graph = maxflow.Graph[float](n_points, len(edges))
-    nodes = graph.add_nodes(n_points)
-    graph.add_edges(tail, head, 2.0 * weight - both_out, np.zeros(len(edges)))
-    # Sink side = inlier: the source edge is cut (paid) by inliers, the sink edge by outliers.
-    graph.add_grid_tedges(nodes, np.clip(linear, 0.0, None), np.clip(-linear, 0.0, None))
-    graph.maxflow()
-    return graph.get_grid_segments(nodes)
-
-
-@dataclass(frozen=True)
-class Correspondences:
-    """Validated correspondences with what every hypothesis test reuses.
-
-    Attributes:
-        model: the motion model.
-        src, dst: :math:`(N, 2)` float64; dt: :math:`(N,)` float64.
-        design: ``dt J(src)`` stacked to :math:`(2N, P)`; target: ``dst - src`` flattened, :math:`(2N,)`.
-        edges: neighbourhood graph :math:`(E, 2)`.
-        neighbors: :math:`(N, D)` neighbour indices padded with ``-1``, ``D`` the largest degree.
-        degree: :math:`(N,)` number of neighbours.
-        potts: ``edges`` as the Potts graph of PEARL's α-expansions, validated and laid out once.
-    """
-
-    model: MotionModel
-    src: np.ndarray
-    dst: np.ndarray
-    dt: np.ndarray
-    design: np.ndarray
-    target: np.ndarray
-    edges: np.ndarray
-    neighbors: np.ndarray
-    degree: np.ndarray
-    potts: PottsGraph
-
-    @classmethod
-    def build(
-        cls, src, dst, dt, model: MotionModel, *, neighborhood_ball_radius: float = 15.0, neighbors=None
-    ) -> Correspondences:
-        """Validate correspondences and build the neighbourhood graph (``neighbors`` overrides it).
-
-        Raises:
-            ModelError: ``src``/``dst`` not both :math:`(N, 2)`, ``dt`` not broadcastable to
-                :math:`(N,)`, NaN/inf or zero time gaps.
-            ShapeError: ``neighbors`` not an :math:`(E, 2)` array of indices in ``[0, N)``.
-        """
-        if not isinstance(model, MotionModel):
-            raise ModelError(f"model must be a MotionModel, got {type(model).__name__}")
-        src = np.asarray(src, dtype=np.float64)
-        dst = np.asarray(dst, dtype=np.float64)
-        if src.ndim != 2 or src.shape[1] != 2 or dst.shape != src.shape:
-            raise ModelError(f"src and dst must both be (N, 2), got {src.shape} and {dst.shape}")
-        n_points = src.shape[0]
-        dt = np.asarray(dt, dtype=np.float64)
-        if dt.ndim > 1 or dt.size not in (1, n_points):
-            raise ModelError(f"dt must be a scalar or ({n_points},), got shape {dt.shape}")
-        dt = np.broadcast_to(dt.reshape(-1), (n_points,))
-        if not (np.isfinite(src).all() and np.isfinite(dst).all() and np.isfinite(dt).all()):
-            raise ModelError("correspondences hold NaN or inf")
-        if np.any(dt == 0):
-            raise ModelError("correspondence time gaps dt must be non-zero")
-        if neighbors is None:
-            edges = neighborhood_graph(dst, neighborhood_ball_radius)
-        else:
-            edges = np.asarray(neighbors)
-            if edges.ndim != 2 or edges.shape[1] != 2 or not np.issubdtype(edges.dtype, np.integer):
-                raise ShapeError(f"neighbors must be an integer (E, 2) array, got {edges.dtype}{edges.shape}")
-            if edges.size and (edges.min() < 0 or edges.max() >= n_points):
-                raise ShapeError(f"neighbors must index points in [0, {n_points})")
-            edges = edges[edges[:, 0] != edges[:, 1]].astype(np.int64)
-        indptr, indices = adjacency(edges, n_points)
-        degree = np.diff(indptr)
-        width = int(degree.max(initial=0))
-        slot = np.arange(len(indices)) - np.repeat(indptr[:-1], degree)
-        padded = np.full((n_points, width), -1, dtype=np.int64)
-        padded[np.repeat(np.arange(n_points), degree), slot] = indices
-        design = (model.jacobian(src) * dt[:, None, None]).reshape(2 * n_points, model.n_params)
-        potts = potts_graph(edges, n_nodes=n_points)
-        return cls(model, src, dst, dt, design, (dst - src).reshape(-1), edges, padded, degree, potts)
-
-    @property
-    def n_points(self) -> int:
-        return self.src.shape[0]
-
-    def sq_residuals(self, params: np.ndarray) -> np.ndarray:
-        """Squared transfer errors of K hypotheses :math:`(K, P)`, shape :math:`(K, N)`."""
-        diff = self.target - params @ self.design.T
-        return np.square(diff[:, 0::2]) + np.square(diff[:, 1::2])
-
-    def fit(self, index: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Least-squares fits on point subsets ``index`` :math:`(S, M)`; see ``estimate_batch``."""
-        return self.model.estimate_batch(self.src[index], self.dst[index], self.dt[index], weights)
-
-    def fit_weighted(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Weighted least-squares fits on all points, one per row of ``weights`` :math:`(K, N)`."""
-        index = np.broadcast_to(np.arange(self.n_points), weights.shape)
-        return self.fit(index, weights)
-
-    def napsac(self, rng: np.random.Generator, count: int, weights: np.ndarray | None = None) -> np.ndarray:
-        """``count`` minimal samples :math:`(count, m)`: a centre plus ``m - 1`` of its neighbours.
-
-        Centres without enough neighbours are never drawn (NAPSAC's retry); when no point has enough,
-        the samples are drawn uniformly from all points. ``weights`` :math:`(N,)`, positive, make
-        centres and neighbours that many times likelier (weighted sampling without replacement);
-        ``None`` draws them uniformly.
-        """
-        m = self.model.min_samples
-        eligible = np.flatnonzero(self.degree >= m - 1)
-        if eligible.size == 0:
-            return np.argsort(rng.random((count, self.n_points)), axis=1)[:, :m]
-        if weights is None:
-            centres = eligible[rng.integers(eligible.size, size=count)]
-        else:
-            odds = np.cumsum(weights[eligible])
-            centres = eligible[
-                np.minimum(
-                    np.searchsorted(odds, rng.random(count) * odds[-1], side="right"), eligible.size - 1
-                )
-            ]
-        if m == 1:
-            return centres[:, None]
-        candidates = self.neighbors[centres]
-        # Efraimidis-Spirakis: the m - 1 smallest exponential keys -log(u) / w are a weighted draw.
-        keys = -np.log1p(-rng.random(candidates.shape))
-        if weights is not None:
-            keys /= weights[candidates]
-        keys[candidates < 0] = np.inf
-        picks = np.argpartition(keys, m - 2, axis=1)[:, : m - 1]
-        return np.concatenate([centres[:, None], np.take_along_axis(candidates, picks, axis=1)], axis=1)
 
 
 @dataclass(frozen=True)
@@ -266,7 +93,7 @@ class _Scoring:
     threshold: float
     compound: np.ndarray | None
     exponent: float
-    quality: str = "progressive_x"
+    quality: str
 
     def __call__(self, pref: np.ndarray) -> np.ndarray:
         if self.compound is None:
@@ -339,7 +166,7 @@ def run_gc_ransac(
     compound_preference: np.ndarray | None,
     scoring_exponent: float,
     rng: np.random.Generator,
-    quality: str = "progressive_x",
+    quality: str,
 ):
     """:func:`gc_ransac` on validated :class:`Correspondences` (Progressive-X calls it repeatedly)."""
     m = data.model.min_samples
@@ -390,8 +217,8 @@ def check_fitting_parameters(
     spatial_coherence_weight,
     max_iters,
     min_iters=0,
-    scoring_exponent=1,
-    quality="progressive_x",
+    scoring_exponent,
+    quality,
 ) -> None:
     """Raise :class:`ConfigError` naming the first out-of-range robust-fitting parameter."""
     if not threshold > 0:
@@ -400,8 +227,9 @@ def check_fitting_parameters(
         raise ConfigError(f"conf must lie in (0, 1), got {conf}")
     if not 0 <= spatial_coherence_weight <= 1:
         raise ConfigError(f"spatial_coherence_weight must lie in [0, 1], got {spatial_coherence_weight}")
-    if not 1 <= max_iters or not 0 <= min_iters <= max_iters:
-        raise ConfigError(f"need 0 <= min_iters <= max_iters, 1 <= max_iters; got {min_iters}, {max_iters}")
+    check_integer(max_iters, "max_iters", at_least=1)
+    if check_integer(min_iters, "min_iters") > max_iters:
+        raise ConfigError(f"min_iters must be at most max_iters, got {min_iters} and {max_iters}")
     if not scoring_exponent > 0:
         raise ConfigError(f"scoring_exponent must be positive, got {scoring_exponent}")
     check_quality(quality)
@@ -419,16 +247,16 @@ def gc_ransac(
     dt,
     model: MotionModel,
     *,
-    threshold: float = 1.5,
-    conf: float = 0.95,
-    spatial_coherence_weight: float = 0.14,
-    neighborhood_ball_radius: float = 15.0,
+    threshold: float = LevelOneConfig.threshold,
+    conf: float = LevelOneConfig.conf,
+    spatial_coherence_weight: float = LevelOneConfig.spatial_coherence_weight,
+    neighborhood_ball_radius: float = LevelOneConfig.neighborhood_ball_radius,
     neighbors=None,
-    max_iters: int = 1000,
+    max_iters: int = LevelOneConfig.max_iters,
     min_iters: int = 20,
     compound_preference=None,
-    scoring_exponent: float = 1,
-    quality: str = "progressive_x",
+    scoring_exponent: float = LevelOneConfig.scoring_exponent,
+    quality: str = LevelOneConfig.quality,
     rng=None,
 ):
     """Robustly fit one motion model to feature correspondences with GC-RANSAC.

@@ -24,12 +24,9 @@ Progressive-X counts the points that PEARL leaves outliers, ``N - N_C``. It boun
 compound-model-aware quality of any proposal in both forms: ``sum_i max(0, pref_i(h) - pref_i(C))``
 (Progressive-X's with ``scoring_exponent`` 1) and ``sum_i min(pref_i(h), 1 - pref_i(C))`` (Eq. 4).
 So the loop goes on while a proposal could still score like an instance of the minimum size.
-``N - N_C`` does not: PEARL's Potts term pulls nearly every track into an instance (in 23 of the 24
-scenes of ``shared/data/synthetic_probe`` no track was left an outlier), so it fell to 0 as soon as
-one instance covered two objects whose motions differ by a few pixels, and the proposal that splits
-them was never made. On those scenes, of the layers with 8 or more tracks whose motion is 3.5-5 px
-(over the 30 ms window) from the nearest other layer's, 9 of 15 got an instance of their own with
-``N - N_C`` and 13 with ``U``.
+``N - N_C`` does not: PEARL's Potts term pulls nearly every track into an instance, so it falls to 0
+as soon as one instance covers two objects whose motions differ by a few pixels, and the proposal that
+splits them is never made; with ``U`` close objects more often get instances of their own.
 
 ``k`` counts the RANSAC iterations since the instances last changed, not since the start as in
 Progressive-X's code: samples drawn before an instance was accepted were scored against another
@@ -49,6 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from evseg_torch.config import LevelOneConfig
 from evseg_torch.errors import ConfigError
 from evseg_torch.graphcut.alpha_expansion import alpha_expansion
 from evseg_torch.level_one.gc_ransac import (
@@ -59,6 +57,7 @@ from evseg_torch.level_one.gc_ransac import (
     run_gc_ransac,
 )
 from evseg_torch.motion.base import MotionModel
+from evseg_torch.validation import check_integer
 
 __all__ = ["OUTLIER", "ProgressiveXResult", "pearl", "progressive_x"]
 
@@ -189,24 +188,25 @@ def progressive_x(
     dt,
     model: MotionModel,
     *,
-    threshold: float = 1.5,
-    conf: float = 0.95,
-    spatial_coherence_weight: float = 0.14,
-    neighborhood_ball_radius: float = 15.0,
-    maximum_tanimoto_similarity: float = 0.5,
-    max_iters: int = 1000,
-    minimum_point_number: int = 10,
-    maximum_model_number: int = -1,
-    scoring_exponent: float = 1,
-    quality: str = "progressive_x",
+    threshold: float = LevelOneConfig.threshold,
+    conf: float = LevelOneConfig.conf,
+    spatial_coherence_weight: float = LevelOneConfig.spatial_coherence_weight,
+    neighborhood_ball_radius: float = LevelOneConfig.neighborhood_ball_radius,
+    maximum_tanimoto_similarity: float = LevelOneConfig.maximum_tanimoto_similarity,
+    max_iters: int = LevelOneConfig.max_iters,
+    minimum_point_number: int = LevelOneConfig.minimum_point_number,
+    maximum_model_number: int = LevelOneConfig.maximum_model_number,
+    scoring_exponent: float = LevelOneConfig.scoring_exponent,
+    quality: str = LevelOneConfig.quality,
     initial_models=None,
     rng=None,
 ) -> ProgressiveXResult:
     """Find every motion among feature correspondences and label each correspondence with one of them.
 
-    Parameter names follow pyprogressivex; the defaults are chosen for Lucas-Kanade tracks in pixels
-    over 15-35 ms windows (100-300 tracks on a 240x180 or 346x260 sensor), not copied from
-    pyprogressivex, whose defaults suit homographies (see the method reference, pitfall 8).
+    Parameter names follow pyprogressivex; the defaults are :class:`~evseg_torch.config.LevelOneConfig`'s,
+    chosen for Lucas-Kanade tracks in pixels over 15-35 ms windows (100-300 tracks on a 240x180 or
+    346x260 sensor), not copied from pyprogressivex, whose defaults suit homographies (see the method
+    reference, pitfall 8).
 
     Args:
         src: feature positions at the earlier time, :math:`(N, 2)` pixels.
@@ -227,9 +227,11 @@ def progressive_x(
             while accepting a small object next to the background.
         max_iters: cap on GC-RANSAC's minimal samples per proposal (pyprogressivex's 1000).
         minimum_point_number: fewest inliers of an instance; also PEARL's label cost and the level
-            of the termination bound. 10 (pyprogressivex's) rather than the C++ 20: a small moving
-            object often carries only 10-30 tracks, and an instance must still save ``10 / (1 - w)``
-            data cost to pay its label, far more than random outlier tracks support.
+            of the termination bound. 4 rather than pyprogressivex's 10 or the C++ 20: a small moving
+            object often carries only a few tracks, and in the cascade level two's label cost prunes
+            the weak models that a low minimum lets through; alone, level one is better served by 10,
+            where an instance must save ``10 / (1 - w)`` data cost to pay its label, far more than
+            random outlier tracks support.
         maximum_model_number: stop at this many instances; ``-1`` for no limit.
         scoring_exponent: power of the support a proposal shares with the compound model in the
             ``"progressive_x"`` quality; unused by ``"paper"``. 1 rather than Progressive-X's code's
@@ -265,8 +267,7 @@ def progressive_x(
     )
     if not 0 <= maximum_tanimoto_similarity <= 1:
         raise ConfigError(f"maximum_tanimoto_similarity must be in [0, 1], got {maximum_tanimoto_similarity}")
-    if minimum_point_number < 0:
-        raise ConfigError(f"minimum_point_number must be non-negative, got {minimum_point_number}")
+    check_integer(minimum_point_number, "minimum_point_number")
     data = Correspondences.build(src, dst, dt, model, neighborhood_ball_radius=neighborhood_ball_radius)
     n_points, sample_size = data.n_points, model.min_samples
     min_inliers = max(sample_size, int(minimum_point_number))

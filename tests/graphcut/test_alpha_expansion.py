@@ -428,8 +428,8 @@ class TestValidation:
                 r"init_labels must lie in \[-1, 2\)",
             ),
             (dict(init_labels=[0.0, 1.0, 1.0]), GraphCutError, "init_labels must be an integer array"),
-            (dict(max_cycles=-1), GraphCutError, "max_cycles must be a non-negative integer"),
-            (dict(max_cycles=1.5), GraphCutError, "max_cycles must be a non-negative integer"),
+            (dict(max_cycles=-1), GraphCutError, "max_cycles must be an integer of at least 0"),
+            (dict(max_cycles=1.5), GraphCutError, "max_cycles must be an integer of at least 0"),
         ],
     )
     def test_invalid_inputs(self, kwargs, error, match):

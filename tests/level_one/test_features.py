@@ -344,7 +344,7 @@ def test_tracks_follow_true_motions():
         result = extract_correspondences(scene.events, SENSOR, t_ref=scene.t0_us)
         counts.append(len(result))
         rates.append(_agreement(scene, result).mean())
-    # The bar: 90 % of the kept tracks within 1.5 px of their layer's motion, while the
+    # The bar: 90 % of the kept tracks within 1.5 px of their layer's motion, while the
     # defaults still keep every corner the images offer (small objects need every track).
     assert min(counts) >= 150, counts
     assert np.average(rates, weights=counts) >= 0.9 and min(rates) >= 0.85, np.round(rates, 3)

@@ -14,7 +14,7 @@ from evseg_torch.level_one.gc_ransac import (
 )
 from evseg_torch.level_one.neighborhood import adjacency, neighborhood_graph
 from evseg_torch.motion import Affine4, Translation
-from tests.level_one.test_progressive_x import DT, SENSOR, make_scene
+from tests.helpers.level_one import DT, SENSOR, make_scene
 
 
 class TestNeighborhood:

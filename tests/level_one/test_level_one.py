@@ -5,6 +5,7 @@ import numpy as np
 from evseg_torch.level_one.features import extract_correspondences
 from evseg_torch.level_one.progressive_x import progressive_x
 from evseg_torch.synthetic import make_scene
+from tests.helpers.level_one import ALONE
 
 SENSOR = (180, 240)
 DURATION = 0.03
@@ -12,7 +13,7 @@ DURATION = 0.03
 # beyond what Lucas-Kanade on 10 ms event images tracks: a documented limitation of level one).
 SPEED_RANGE = (100.0, 600.0)
 MIN_RELATIVE_SPEED = 150.0
-MIN_AREA = 0.03  # the bar: every IMO covering at least 3 % of the image
+MIN_AREA = 0.03  # every IMO covering at least 3 % of the image must be found
 TOLERANCE = 1.5  # px, mean displacement error over the layer's pixels over the window
 
 
@@ -51,7 +52,7 @@ def test_every_moving_object_found():
             rng=seed,
         )
         tracks = extract_correspondences(scene.events, SENSOR, t_ref=scene.t0_us)
-        result = progressive_x(tracks.src, tracks.dst, tracks.dt, scene.motions[0].model, rng=seed)
+        result = progressive_x(tracks.src, tracks.dst, tracks.dt, scene.motions[0].model, rng=seed, **ALONE)
         errors = layer_errors(scene, result.params)
         found += max(errors) < TOLERANCE
         report.append((seed, len(tracks), len(result.params), np.round(errors, 2).tolist()))

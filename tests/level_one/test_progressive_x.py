@@ -15,63 +15,7 @@ from evseg_torch.level_one.progressive_x import (
     progressive_x,
 )
 from evseg_torch.motion import Affine4, Translation
-
-SENSOR = (180, 240)
-# Object centres (x, y) and motions: the background first, then up to three objects. Per-second
-# rates over a 30 ms window: the objects' displacements differ from the background's by >= 5 px.
-CENTRES = np.array([[55.0, 50.0], [185.0, 60.0], [120.0, 135.0]])
-AFFINE = np.array(
-    [[60.0, -30.0, 0.3, 0.2], [-250.0, 60.0, 0.5, -0.4], [180.0, 220.0, -0.3, 0.3], [40.0, -300.0, 0.2, 0.6]]
-)
-DT = 0.03
-
-
-def make_scene(
-    rng,
-    name="affine4",
-    n_motions=3,
-    *,
-    n_background=120,
-    n_object=45,
-    outlier_ratio=0.3,
-    noise=0.3,
-    radius=28.0,
-    params=None,
-    centres=CENTRES,
-    dt=DT,
-):
-    """Correspondences of a background spread over the image and objects in their own discs.
-
-    Outliers are uniform positions with a uniform displacement in ``[-10, 10]^2`` px. Returns
-    ``(model, src, dst, dt, ground-truth labels with -1 for outliers, params)``.
-    """
-    rng = np.random.default_rng(rng)
-    model = Affine4(SENSOR) if name == "affine4" else Translation(SENSOR)
-    if params is None:
-        params = AFFINE[:n_motions] if name == "affine4" else AFFINE[:n_motions, :2]
-    height, width = SENSOR
-    background = rng.uniform([0, 0], [width, height], (6 * n_background, 2))
-    occluded = np.zeros(len(background), dtype=bool)
-    for centre in centres[: n_motions - 1]:
-        occluded |= np.linalg.norm(background - centre, axis=1) < radius + 5
-    points, truth = [background[~occluded][:n_background]], [np.zeros(n_background, dtype=np.int64)]
-    for k, centre in enumerate(centres[: n_motions - 1]):
-        angle = rng.uniform(0, 2 * np.pi, n_object)
-        distance = radius * np.sqrt(rng.uniform(0, 1, n_object))
-        points.append(centre + distance[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1))
-        truth.append(np.full(n_object, k + 1))
-    src, truth = np.concatenate(points), np.concatenate(truth)
-    dst = np.empty_like(src)
-    for k in range(n_motions):
-        dst[truth == k] = model.predict(src[truth == k], dt, params[k])
-    dst += rng.normal(0, noise, dst.shape)
-    n_outliers = round(outlier_ratio * len(src) / (1 - outlier_ratio))
-    outlier_src = rng.uniform([0, 0], [width, height], (n_outliers, 2))
-    src = np.concatenate([src, outlier_src])
-    dst = np.concatenate([dst, outlier_src + rng.uniform(-10, 10, (n_outliers, 2))])
-    truth = np.concatenate([truth, np.full(n_outliers, -1)])
-    order = rng.permutation(len(src))
-    return model, src[order], dst[order], np.full(len(src), dt), truth[order], params
+from tests.helpers.level_one import AFFINE, ALONE, DT, SENSOR, make_scene
 
 
 def match(result: ProgressiveXResult, truth: np.ndarray, n_motions: int) -> np.ndarray:
@@ -95,7 +39,7 @@ class TestRecovery:
     @pytest.mark.parametrize("n_motions", [1, 2, 3, 4])
     def test_recovers_motions(self, name, n_motions, quality):
         model, src, dst, dt, truth, params = make_scene(n_motions, name, n_motions)
-        result = progressive_x(src, dst, dt, model, quality=quality, rng=0)
+        result = progressive_x(src, dst, dt, model, quality=quality, rng=0, **ALONE)
         assert result.params.shape == (n_motions, model.n_params)
         assert result.labels.dtype == np.int64 and result.labels.shape == truth.shape
         matched = match(result, truth, n_motions)
@@ -111,7 +55,7 @@ class TestRecovery:
 
     def test_outlier_sentinel(self):
         model, src, dst, dt, truth, _ = make_scene(0, "affine4", 2)
-        result = progressive_x(src, dst, dt, model, rng=0)
+        result = progressive_x(src, dst, dt, model, rng=0, **ALONE)
         assert OUTLIER == -1
         assert set(np.unique(result.labels)) <= {-1, 0, 1}
         # Most gross outliers stay unexplained (some coincide with a motion or are smoothed into one).
@@ -121,13 +65,13 @@ class TestRecovery:
         exact = 0
         for seed in range(10):
             model, src, dst, dt, _, _ = make_scene(100 + seed, "affine4", 2)
-            exact += len(progressive_x(src, dst, dt, model, rng=seed).params) == 2
+            exact += len(progressive_x(src, dst, dt, model, rng=seed, **ALONE).params) == 2
         assert exact >= 9
 
     def test_same_seed_same_result(self):
         model, src, dst, dt, _, _ = make_scene(3, "affine4", 3)
-        first = progressive_x(src, dst, dt, model, rng=7)
-        second = progressive_x(src, dst, dt, model, rng=np.random.default_rng(7))
+        first = progressive_x(src, dst, dt, model, rng=7, **ALONE)
+        second = progressive_x(src, dst, dt, model, rng=np.random.default_rng(7), **ALONE)
         np.testing.assert_array_equal(first.params, second.params)
         np.testing.assert_array_equal(first.labels, second.labels)
         assert (first.n_proposals, first.n_iterations) == (second.n_proposals, second.n_iterations)
@@ -136,14 +80,14 @@ class TestRecovery:
         model, src, dst, dt, _, _ = make_scene(0, "translation", 2)
         copies = [src.copy(), dst.copy(), dt.copy()]
         initial = np.array([[60.0, -30.0]])
-        progressive_x(src, dst, dt, model, initial_models=initial, rng=0)
+        progressive_x(src, dst, dt, model, initial_models=initial, rng=0, **ALONE)
         for before, after in zip(copies, [src, dst, dt], strict=True):
             np.testing.assert_array_equal(before, after)
         np.testing.assert_array_equal(initial, [[60.0, -30.0]])
 
     def test_maximum_model_number(self):
         model, src, dst, dt, _, _ = make_scene(0, "affine4", 3)
-        result = progressive_x(src, dst, dt, model, maximum_model_number=1, rng=0)
+        result = progressive_x(src, dst, dt, model, maximum_model_number=1, rng=0, **ALONE)
         assert len(result.params) == 1 and result.n_proposals == 1
 
 
@@ -210,11 +154,11 @@ class TestCloseMotions:
 class TestReuse:
     def test_reuse_gives_same_models_with_fewer_iterations(self):
         model, src, dst, dt, truth, params = make_scene(1, "affine4", 3)
-        cold = progressive_x(src, dst, dt, model, rng=0)
+        cold = progressive_x(src, dst, dt, model, rng=0, **ALONE)
         # The next window: same motions, new tracks, noise and outliers.
         model, src, dst, dt, truth, params = make_scene(2, "affine4", 3)
-        fresh = progressive_x(src, dst, dt, model, rng=0)
-        reused = progressive_x(src, dst, dt, model, initial_models=cold.params, rng=0)
+        fresh = progressive_x(src, dst, dt, model, rng=0, **ALONE)
+        reused = progressive_x(src, dst, dt, model, initial_models=cold.params, rng=0, **ALONE)
         assert len(reused.params) == 3
         # Only the final proposal, which confirms that nothing is left to find, remains to be sampled.
         assert reused.n_iterations < fresh.n_iterations
@@ -229,7 +173,9 @@ class TestReuse:
         model, src, dst, dt, truth, params = make_scene(4, "affine4", 3)
         stale = np.array([[-400.0, 400.0, 0.0, 0.0]])
         # The background and a motion that has left the scene are known; object 2 is new.
-        result = progressive_x(src, dst, dt, model, initial_models=np.concatenate([params[:1], stale]), rng=0)
+        result = progressive_x(
+            src, dst, dt, model, initial_models=np.concatenate([params[:1], stale]), rng=0, **ALONE
+        )
         assert len(result.params) == 3
         matched = match(result, truth, 3)
         assert sorted(matched.tolist()) == [0, 1, 2]
@@ -283,9 +229,9 @@ class TestErrors:
 
     def test_too_few_points_give_empty_result(self):
         model, src, dst, dt, _, _ = make_scene(0, "affine4", 1)
-        result = progressive_x(src[:5], dst[:5], dt[:5], model)
+        result = progressive_x(src[:5], dst[:5], dt[:5], model, **ALONE)
         assert result.params.shape == (0, 4)
         np.testing.assert_array_equal(result.labels, np.full(5, OUTLIER))
         assert (result.n_proposals, result.n_iterations) == (0, 0)
-        empty = progressive_x(np.zeros((0, 2)), np.zeros((0, 2)), 0.01, model)
+        empty = progressive_x(np.zeros((0, 2)), np.zeros((0, 2)), 0.01, model, **ALONE)
         assert empty.params.shape == (0, 4) and empty.labels.shape == (0,)

@@ -7,7 +7,7 @@ from evseg_torch.config import LevelOneConfig, config_from_dict, load_config
 from evseg_torch.errors import ConfigError
 from evseg_torch.level_one.gc_ransac import QUALITIES, _Scoring, gc_ransac, preference
 from evseg_torch.level_one.progressive_x import progressive_x
-from tests.level_one.test_progressive_x import make_scene
+from tests.helpers.level_one import make_scene
 
 # tau = 1 px, so gamma = 1.5 px and gamma^2 = 2.25 px^2: squared errors 0, 0.5625, 1.125, 2.25 and 9
 # give preferences 1, 0.75, 0.5, 0 and 0.
