@@ -23,6 +23,14 @@ from evseg_torch.config import FeatureConfig, LevelOneConfig, LevelTwoConfig, Se
 from evseg_torch.level_one.features import detect_corners, extract_correspondences, to_uint8, track_features
 from evseg_torch.level_one.gc_ransac import Correspondences, gc_ransac
 from evseg_torch.level_one.progressive_x import progressive_x
+from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter
+from evseg_torch.level_two.energy.data_term import DataCost, data_cost
+from evseg_torch.level_two.energy.graph import event_graph, site_graph
+from evseg_torch.level_two.image.splat import ImageOfWarpedEvents, splat_events, warped_iwe
+from evseg_torch.level_two.objectives.contrast import ContrastLoss, contrast_loss, padded_contrast_loss
+from evseg_torch.level_two.objectives.multi_model import MultiModelContrastLoss, multi_model_contrast_loss
+from evseg_torch.level_two.solver.cmax import ContrastMaximization
+from evseg_torch.level_two.solver.optimizers import adam, lbfgs
 from evseg_torch.motion import Rotation3D
 
 Field = str | Callable[[dict[str, Any]], Any] | None
@@ -42,6 +50,13 @@ def _square(field: str) -> Callable[[dict[str, Any]], tuple]:
 
 
 LK_WINDOW = {"win_size": _square("lk_win_size"), "max_level": "lk_max_level"}
+DATA_TERM = {
+    "sigma": "data_sigma",
+    "normalization": "data_normalization",
+    "polarity": "data_polarity",
+    "floor_quantile": "data_floor_quantile",
+    "pool_floor_quantile": "data_pool_floor_quantile",
+}
 
 DEFAULTS = [
     Defaults(detect_corners, FeatureConfig, {"sigma": "corner_sigma"}),
@@ -53,6 +68,26 @@ DEFAULTS = [
     Defaults(Correspondences.build, LevelOneConfig),
     Defaults(progressive_x, LevelOneConfig, {"initial_models": None}),
     Defaults(Rotation3D, SegmenterConfig),
+    Defaults(DataCost, LevelTwoConfig, DATA_TERM),
+    Defaults(data_cost, LevelTwoConfig, DATA_TERM),
+    Defaults(ContrastMaximization, LevelTwoConfig),
+    # None: the module's (the config's) iterations, or the config's discovery rounds.
+    Defaults(ContrastMaximization.forward, LevelTwoConfig, {"max_iter": None}),
+    Defaults(GraphCutContrastSegmenter.forward, LevelTwoConfig, {"discovery_rounds": None}),
+    # The optimisers' own steps, which the config's ``lr: null`` defers to.
+    Defaults(lbfgs, LevelTwoConfig, {"lr": None}),
+    Defaults(adam, LevelTwoConfig, {"lr": None}),
+    Defaults(contrast_loss, LevelTwoConfig),
+    Defaults(padded_contrast_loss, LevelTwoConfig),
+    Defaults(ContrastLoss, LevelTwoConfig),
+    Defaults(multi_model_contrast_loss, LevelTwoConfig),
+    Defaults(MultiModelContrastLoss, LevelTwoConfig),
+    # An image's blur (EMSGC's 1 px), the refits' ``sigma`` by default.
+    Defaults(splat_events, LevelTwoConfig),
+    Defaults(warped_iwe, LevelTwoConfig),
+    Defaults(ImageOfWarpedEvents, LevelTwoConfig),
+    Defaults(event_graph, LevelTwoConfig),
+    Defaults(site_graph, LevelTwoConfig, {"time_slices": "site_time_slices"}),
 ]
 
 # Modules whose public callables must all be rows of DEFAULTS when a keyword default of theirs is named
@@ -67,6 +102,19 @@ MODULES = [
     "evseg_torch.level_one.neighborhood",
     "evseg_torch.level_one.progressive_x",
     "evseg_torch.level_one.sampling",
+    "evseg_torch.level_two.descent.segmenter",
+    "evseg_torch.level_two.discovery",
+    "evseg_torch.level_two.energy.data_term",
+    "evseg_torch.level_two.energy.graph",
+    "evseg_torch.level_two.energy.label_cost",
+    "evseg_torch.level_two.image.blur",
+    "evseg_torch.level_two.image.splat",
+    "evseg_torch.level_two.image.warp",
+    "evseg_torch.level_two.objectives.contrast",
+    "evseg_torch.level_two.objectives.multi_model",
+    "evseg_torch.level_two.objects",
+    "evseg_torch.level_two.solver.cmax",
+    "evseg_torch.level_two.solver.optimizers",
     "evseg_torch.motion",
     "evseg_torch.tracking",
 ]

@@ -12,6 +12,17 @@ from evseg_torch.errors import ConfigError, EventFormatError, ModelError, ShapeE
 from evseg_torch.events import EventBatch
 from evseg_torch.motion import MotionModel
 
+__all__ = [
+    "check_blur",
+    "check_events",
+    "check_image",
+    "check_labels",
+    "check_padded_batch",
+    "check_params",
+    "check_points",
+    "check_sensor_size",
+]
+
 
 def check_points(xy: Tensor, name: str) -> None:
     """``xy`` is a tensor of positions :math:`(..., N, 2)`; ``name`` names it in the error."""

@@ -11,6 +11,8 @@ from torch import Tensor, nn
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.descent.state import WindowState
 
+__all__ = ["chunks", "memberships", "padded_pools", "padded_rows", "select_windows", "subsample"]
+
 
 def memberships(labels: Tensor, n_clusters: int, dtype: torch.dtype) -> Tensor:
     """One-hot memberships :math:`(..., K, N)` of labels :math:`(..., N)`; label -1 (padding) is in none."""

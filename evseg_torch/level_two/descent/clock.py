@@ -7,6 +7,8 @@ from collections.abc import Sequence
 
 from evseg_torch.level_two.descent.state import WindowState
 
+__all__ = ["STAGES", "StageClock"]
+
 STAGES = ("graph", "data_term", "labelling", "refit", "discovery", "images")
 """The stages of level two that :class:`StageClock` times."""
 

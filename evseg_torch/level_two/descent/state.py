@@ -23,6 +23,8 @@ from evseg_torch.level_two.descent.steps import Step
 from evseg_torch.level_two.energy.graph import event_graph, site_graph
 from evseg_torch.motion import MotionModel
 
+__all__ = ["WindowState", "changed_fraction", "renumber_by_size", "site_majority", "start_window"]
+
 
 @dataclass
 class WindowState:

@@ -15,6 +15,8 @@ from torch import Tensor, nn
 
 from evseg_torch.level_two.checks import check_blur
 
+__all__ = ["BLUR_TRUNCATE", "gaussian_blur", "gaussian_taps"]
+
 BLUR_TRUNCATE = 3.0
 """The blur kernel reaches ``ceil(BLUR_TRUNCATE * sigma)`` pixels each side."""
 

@@ -42,6 +42,16 @@ from evseg_torch.level_two.image.blur import BLUR_TRUNCATE, gaussian_blur
 from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import MotionModel
 
+__all__ = [
+    "ImageOfWarpedEvents",
+    "bilinear_taps",
+    "extent_mask",
+    "read_flat",
+    "scatter_taps",
+    "splat_events",
+    "warped_iwe",
+]
+
 
 def splat_events(
     xy: Tensor,

@@ -24,6 +24,8 @@ from evseg_torch.level_two.image.blur import gaussian_blur
 from evseg_torch.level_two.image.splat import bilinear_taps, extent_mask, read_flat, scatter_taps
 from evseg_torch.level_two.image.warp import sum_ignoring_padding
 
+__all__ = ["centred_variance", "iwe_variance", "iwe_variance_and_pullback"]
+
 
 def iwe_variance(
     xy: Tensor, weights: Tensor, size: tuple[int, int], sigma: float, extent: Tensor | None = None

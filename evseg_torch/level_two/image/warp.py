@@ -19,6 +19,8 @@ from evseg_torch.events import EventBatch
 from evseg_torch.level_two.checks import check_points
 from evseg_torch.motion import MotionModel
 
+__all__ = ["LinearWarp", "area_from", "area_gradient", "sum_ignoring_padding", "warp_events"]
+
 # Values per block of sum_ignoring_padding: long enough for torch's fast sums, short enough that the
 # zeros completing the last block cost little.
 _SUM_BLOCK = 256

@@ -42,6 +42,21 @@ from evseg_torch.level_two.image.variance import centred_variance, iwe_variance,
 from evseg_torch.level_two.image.warp import LinearWarp, area_from, area_gradient
 from evseg_torch.motion import MotionModel
 
+__all__ = [
+    "CONTRAST_OBJECTIVES",
+    "MIN_AREA",
+    "REFERENCE_OBJECTIVES",
+    "ContrastLoss",
+    "check_objective",
+    "contrast_loss",
+    "image_variance",
+    "normalized_variance",
+    "padded_contrast_loss",
+    "warp_area_element",
+    "warped_contrast_loss",
+    "warped_contrast_loss_and_grad",
+]
+
 MIN_AREA = 1e-6
 """The area element's floor in the event-collapse votes: folded warps (a <= 0) keep a tiny weight and a
 finite gradient."""

@@ -39,6 +39,8 @@ from evseg_torch.level_two.solver.optimizers import adam, lbfgs
 from evseg_torch.motion import MotionModel
 from evseg_torch.validation import check_integer
 
+__all__ = ["OPTIMIZERS", "ContrastMaximization"]
+
 OPTIMIZERS = ("lbfgs", "adam")
 """The refits' optimisers (:class:`ContrastMaximization`)."""
 

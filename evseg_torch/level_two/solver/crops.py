@@ -14,6 +14,8 @@ from evseg_torch.errors import ShapeError
 from evseg_torch.events import EventBatch
 from evseg_torch.level_two.image.warp import LinearWarp
 
+__all__ = ["fit_crops", "gather_members"]
+
 # Pixels a fit's crop reaches beyond its events' raw and initially warped positions: room for the
 # warps of a fit to move (refits move models by a pixel or two) and for the blur.
 _CROP_MARGIN = 8.0

@@ -38,6 +38,19 @@ from torch import Tensor
 
 from evseg_torch.backend import kernel
 
+__all__ = [
+    "ARMIJO",
+    "BACK",
+    "CURVATURE",
+    "GROW",
+    "MAX_TRIALS",
+    "SHRINK",
+    "TINY_STEP",
+    "WOLFE",
+    "adam",
+    "lbfgs",
+]
+
 Evaluate = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 """``evaluate(rows, x)``: the losses :math:`(R,)` and gradients :math:`(R, P)` of problems ``rows``
 (int64 :math:`(R,)`, ascending) at their values ``x`` :math:`(R, P)`."""
@@ -80,7 +93,7 @@ def lbfgs(
     evaluate: Evaluate,
     start: Tensor,
     *,
-    max_iter: int = 20,
+    max_iter: int,
     lr: float = 1.0,
     tol: float = 1e-6,
 ) -> Tensor:
@@ -268,7 +281,7 @@ def adam(
     evaluate: Evaluate,
     start: Tensor,
     *,
-    max_iter: int = 20,
+    max_iter: int,
     lr: float = 0.1,
     tol: float = 1e-6,
     betas: tuple[float, float] = (0.9, 0.999),
