@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from evseg_torch.errors import EvsegError
-from evseg_torch.event_images import event_counts
+from evseg_torch.events.images import event_counts
 
 # Okabe-Ito-like palette, readable for colour-blind viewers, for ids 0-9; higher ids step round the hue
 # circle by the golden angle, so neighbouring ids differ.

@@ -4,8 +4,8 @@ import pytest
 from scipy.ndimage import binary_dilation
 
 from evseg_torch.errors import ConfigError
-from evseg_torch.event_images import event_counts
 from evseg_torch.events import EVENT_DTYPE, as_events
+from evseg_torch.events.images import event_counts
 from evseg_torch.synthetic import LayerMotion, SyntheticScene, make_scene
 
 MODELS = ["translation", "affine4", "rotation3d"]

@@ -39,7 +39,7 @@ import numpy as np
 
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.errors import ConfigError, ReaderError
-from evseg_torch.event_images import event_counts
+from evseg_torch.events.images import event_counts
 from evseg_torch.io import load_eed_boxes, load_events
 from evseg_torch.metrics import box_intersection, box_iou, box_of_points, boxes_nested
 from evseg_torch.pipeline import CascadedSegmenter

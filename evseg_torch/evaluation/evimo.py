@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from evseg_torch.errors import ShapeError
-from evseg_torch.event_images import event_counts
+from evseg_torch.events.images import event_counts
 from evseg_torch.metrics import (
     convex_hull_mask,
     event_iou,

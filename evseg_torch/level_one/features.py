@@ -56,8 +56,8 @@ import torch
 from scipy.spatial import cKDTree
 
 from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
-from evseg_torch.event_images import event_counts
 from evseg_torch.events import EVENT_DTYPE, check_sensor_size
+from evseg_torch.events.images import event_counts
 from evseg_torch.motion import MotionModel
 
 __all__ = [

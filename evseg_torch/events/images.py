@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from evseg_torch.errors import ShapeError
-from evseg_torch.events import check_sensor_size
+from evseg_torch.events.format import check_sensor_size
 
 
 def event_counts(xy, sensor_size: tuple[int, int], labels=None, n_labels: int | None = None) -> np.ndarray:

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from evseg_torch.errors import EventFormatError, ShapeError
-from evseg_torch.event_images import event_counts
+from evseg_torch.events.images import event_counts
 
 
 def test_single_image_counts_events_per_pixel_x_column_y_row():

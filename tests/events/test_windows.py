@@ -1,101 +1,18 @@
+"""Windows cut from a stream of events, by time or by count, chunk by chunk."""
+
 import numpy as np
 import pytest
-import torch
 
 from evseg_torch.data import EventWindowDataset
 from evseg_torch.errors import EventFormatError
 from evseg_torch.events import (
-    EVENT_DTYPE,
     CountWindowIndex,
-    EventBatch,
     TimeWindowIndex,
     as_events,
-    batch_windows,
-    check_sensor_size,
-    infer_sensor_size,
     iter_windows,
-    sensor_size_from_tonic,
-    sensor_size_to_tonic,
-    to_array,
-    to_torch,
     window_ranges_by_count,
     window_ranges_by_time,
 )
-
-
-def _array(n=5):
-    t = np.arange(n) * 1e-3
-    return np.column_stack([t, np.arange(n) % 4, np.arange(n) % 3, np.arange(n) % 2]).astype(np.float64)
-
-
-class TestAsEvents:
-    def test_float_array(self):
-        ev = as_events(_array(), sensor_size=(3, 4))
-        assert ev.dtype == EVENT_DTYPE
-        assert ev["t"].tolist() == [0, 1000, 2000, 3000, 4000]
-        assert ev["p"].tolist() == [-1, 1, -1, 1, -1]
-
-    @pytest.mark.parametrize(
-        "polarity", [np.array([0, 1, 1]), np.array([-1, 1, 1]), np.array([False, True, True])]
-    )
-    def test_polarity_forms_agree(self, polarity):
-        data = np.zeros(3, dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", polarity.dtype)])
-        data["t"], data["p"] = [1, 2, 3], polarity
-        assert as_events(data)["p"].tolist() == [-1, 1, 1]
-
-    def test_aedat_style_on_field(self):
-        data = np.zeros(2, dtype=[("t", "<u8"), ("x", "<u2"), ("y", "<u2"), ("on", "?")])
-        data["on"] = [True, False]
-        assert as_events(data)["p"].tolist() == [1, -1]
-
-    def test_round_trip_through_array(self):
-        ev = as_events(_array())
-        np.testing.assert_array_equal(as_events(to_array(ev)), ev)
-
-    def test_input_not_modified_and_not_returned(self):
-        data = _array()
-        before = data.copy()
-        as_events(data)
-        np.testing.assert_array_equal(data, before)
-        structured = as_events(data)
-        again = as_events(structured)
-        assert again is not structured
-        np.testing.assert_array_equal(again, structured)
-
-    @pytest.mark.parametrize(
-        ("data", "message"),
-        [
-            (np.zeros((0, 4)), "no events"),
-            (np.zeros((3, 3)), r"\(N, 4\)"),
-            (np.array([[0.0, 1, 1, np.nan]]), "NaN"),
-            (np.array([[np.inf, 1, 1, 1]]), "NaN or inf"),
-            (np.array([[0.0, 1.5, 1, 1]]), "non-integer"),
-            (np.array([[0.0, -1, 1, 1]]), "negative"),
-            (np.array([[0.0, 1, 1, 2]]), "polarity"),
-            (np.array([[0.002, 1, 1, 1], [0.001, 1, 1, 1]]), "decrease at event 1"),
-            (np.array(["a", "b"]), r"\(N, 4\)"),
-            (np.zeros(2, dtype=[("t", "f8"), ("x", "i2"), ("y", "i2"), ("p", "i1")]), "integer microseconds"),
-            (np.zeros(2, dtype=[("t", "i8"), ("x", "i2")]), "lack field"),
-            (torch.zeros(2, 4), "NumPy"),
-        ],
-    )
-    def test_exception(self, data, message):
-        with pytest.raises(EventFormatError, match=message):
-            as_events(data)
-
-    def test_outside_sensor(self):
-        with pytest.raises(EventFormatError, match=r"x = 3 lies outside the sensor \(W = 3\)"):
-            as_events(np.array([[0.0, 3, 1, 1]]), sensor_size=(2, 3))
-        with pytest.raises(EventFormatError, match="sensor_size"):
-            as_events(np.array([[0.0, 1, 1, 1]]), sensor_size=(0, 3))
-
-    def test_sensor_size_helpers(self):
-        assert check_sensor_size([180, 240]) == (180, 240)
-        assert sensor_size_from_tonic((240, 180, 2)) == (180, 240)
-        assert sensor_size_to_tonic((180, 240)) == (240, 180, 2)
-        assert infer_sensor_size(as_events(_array())) == (3, 4)
-        with pytest.raises(EventFormatError):
-            check_sensor_size("big")
 
 
 class TestWindows:
@@ -171,16 +88,6 @@ class TestWindows:
             index.add(np.array([9, 12, 11]))
 
 
-def test_to_torch_relative_times_keep_precision(device, dtype):
-    ev = as_events(np.array([[1_600_000_000.0, 1, 2, 1], [1_600_000_000.000001, 3, 4, 0]]))
-    batch = to_torch(ev, device=device, dtype=dtype)
-    assert batch.xy.shape == (2, 2) and batch.xy.dtype == dtype and batch.xy.device.type == device.type
-    torch.testing.assert_close(batch.t.cpu(), torch.tensor([0.0, 1e-6], dtype=dtype))
-    assert batch.p.tolist() == [1.0, -1.0]
-    assert len(batch) == 2
-    assert to_torch(ev, t_ref_us=int(ev["t"][1])).t[0].item() == pytest.approx(-1e-6)
-
-
 class TestIterWindows:
     @staticmethod
     def _stream(n=3000, seed=0):
@@ -249,62 +156,6 @@ class TestIterWindows:
             list(iter_windows([events]))
         with pytest.raises(EventFormatError, match="between chunks"):
             list(iter_windows([events[50:], events[:50]], window_ms=5))
-
-
-class TestEventBatchBatches:
-    def _windows(self):
-        rng = np.random.default_rng(0)
-        return [
-            EventBatch(
-                torch.as_tensor(rng.uniform(0, 20, (n, 2)), dtype=torch.float32),
-                torch.linspace(0, 0.01, n),
-                torch.as_tensor(rng.choice([-1.0, 1.0], n), dtype=torch.float32),
-            )
-            for n in (5, 2, 7)
-        ]
-
-    def test_batch_then_unbatch_gives_the_windows_back(self):
-        windows = self._windows()
-        batch = batch_windows(windows)
-        assert batch.is_batched and len(batch) == 3
-        assert batch.xy.shape == (3, 7, 2) and batch.lengths.tolist() == [5, 2, 7]
-        for window, back in zip(windows, batch.unbatch(), strict=True):
-            for field in ("xy", "t", "p"):
-                assert getattr(back, field).equal(getattr(window, field))
-
-    def test_padding_is_zero_and_masked(self):
-        batch = batch_windows(self._windows())
-        assert batch.mask.sum(dim=1).tolist() == [5, 2, 7]
-        padding = ~batch.mask
-        assert not batch.p[padding].any() and not batch.xy[padding].any() and not batch.t[padding].any()
-
-    def test_one_window_is_not_a_batch(self):
-        window = self._windows()[0]
-        assert not window.is_batched and bool(window.mask.all()) and len(window) == 5
-        with pytest.raises(EventFormatError, match="padded batch"):
-            window.unbatch()
-
-    def test_replace_swaps_a_field(self):
-        window = self._windows()[0]
-        shifted = window._replace(t=window.t + 1.0)
-        assert isinstance(shifted, EventBatch) and len(shifted) == 5 and shifted.xy is window.xy
-        torch.testing.assert_close(shifted.t, window.t + 1.0)
-        with pytest.raises(TypeError, match="4 fields"):
-            EventBatch._make([window.xy, window.t])
-
-    def test_to_casts_events_but_keeps_integer_lengths(self):
-        batch = batch_windows(self._windows()).to(torch.float64)
-        assert batch.xy.dtype == torch.float64 and batch.lengths.dtype == torch.int64
-
-    def test_bad_windows_are_named(self):
-        windows = self._windows()
-        with pytest.raises(EventFormatError, match="at least one"):
-            batch_windows([])
-        with pytest.raises(EventFormatError, match="window 1 is not"):
-            batch_windows([windows[0], batch_windows(windows)])
-        bad = EventBatch(windows[1].xy, windows[1].t, windows[1].p[:1])
-        with pytest.raises(EventFormatError, match="window 1 must have"):
-            batch_windows([windows[0], bad])
 
 
 RECORDINGS = ("uniform", "gaps", "duplicates", "one_instant", "single_event")
