@@ -24,7 +24,7 @@ from evseg_torch.config import SegmenterConfig, bundled_config, load_config, rep
 from evseg_torch.evaluation.eed import load_eed_sequence
 from evseg_torch.evaluation.labelled import load_labelled
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.synthetic_families import make_family_scene
+from evseg_torch.synthetic.families import make_family_scene
 from evseg_torch.threads import set_threads
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"

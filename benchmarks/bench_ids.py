@@ -1,6 +1,6 @@
 """Object ids across windows: how often an object detected in two consecutive windows keeps its id.
 
-Each scene of the ``hard`` family (:mod:`evseg_torch.synthetic_families`) is generated 0.3 s long (its
+Each scene of the ``hard`` family (:mod:`evseg_torch.synthetic.families`) is generated 0.3 s long (its
 objects move through all ten 30 ms windows; a seed whose motions cannot stay in view that long is
 skipped) and streamed as ``evseg segment`` does. In every window,
 clusters are matched to the true layers (:func:`evseg_torch.metrics.match_clusters`, ambiguous and noise
@@ -22,7 +22,7 @@ from evseg_torch.cli import _seed_range
 from evseg_torch.errors import ConfigError
 from evseg_torch.metrics import match_clusters, per_object_iou
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.synthetic_families import family_kinds, make_family_scene
+from evseg_torch.synthetic.families import family_kinds, make_family_scene
 from evseg_torch.threads import set_threads
 
 

@@ -1,6 +1,6 @@
 """Streams against cold windows: per-window quality of ``CascadedSegmenter.stream`` over continuous scenes.
 
-Each scene of the ``hard`` family (:mod:`evseg_torch.synthetic_families`) is generated 0.3 s long and
+Each scene of the ``hard`` family (:mod:`evseg_torch.synthetic.families`) is generated 0.3 s long and
 streamed in 30 ms windows (model reuse and guided tracking on, as in ``evseg segment``); every window is
 also segmented on its own, cold. Both are scored like the probe scenes (ambiguous and noise events left
 out; detection by percentile boxes) and the means over the windows with a moving object are printed,
@@ -22,7 +22,7 @@ from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.errors import ConfigError
 from evseg_torch.evaluation.labelled import score_labelling
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.synthetic_families import make_family_scene
+from evseg_torch.synthetic.families import make_family_scene
 from evseg_torch.threads import set_threads
 
 METRICS = ("accuracy", "iou", "detection")

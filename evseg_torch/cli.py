@@ -514,7 +514,7 @@ def _demo(args) -> int:
 
 def _simulate(args) -> int:
     from evseg_torch.synthetic import make_scene
-    from evseg_torch.synthetic_families import make_family_scene
+    from evseg_torch.synthetic.families import make_family_scene
 
     args.out.mkdir(parents=True, exist_ok=True)
     for seed in args.seeds:

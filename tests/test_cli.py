@@ -13,7 +13,7 @@ from evseg_torch.evaluation.labelled import load_labelled, score_labelling
 from evseg_torch.io import load_events
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic import make_scene
-from evseg_torch.synthetic_families import make_family_scene
+from evseg_torch.synthetic.families import make_family_scene
 
 SIZE = "90x120"
 

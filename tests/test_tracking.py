@@ -16,7 +16,7 @@ from evseg_torch.motion import make_motion_model
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.runs import Job, Stopped, segment_file, with_window
 from evseg_torch.synthetic import make_scene
-from evseg_torch.synthetic_families import make_family_scene
+from evseg_torch.synthetic.families import make_family_scene
 from evseg_torch.tracking import (
     ObjectTracker,
     TrackedClusters,

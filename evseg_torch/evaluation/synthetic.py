@@ -4,7 +4,7 @@ Two families of scenes:
 
 * the default (``family=None``): seed ``s`` has ``1 + s % 3`` objects of
   :func:`~evseg_torch.synthetic.make_scene`;
-* ``"hard"``: :func:`~evseg_torch.synthetic_families.make_family_scene`, the failure modes we know of
+* ``"hard"``: :func:`~evseg_torch.synthetic.families.make_family_scene`, the failure modes we know of
   (similar motions, rotating and scaling objects, small fast objects in sparse windows, weak textures),
   scored as the labelled probe scenes are, by :func:`~evseg_torch.evaluation.labelled.score_labelling`.
 
@@ -66,7 +66,7 @@ def evaluate_synthetic(
             :class:`~evseg_torch.pipeline.CascadedSegmenter` built for ``sensor_size``).
         seeds: scene seeds.
         family: ``None`` for the default scenes, or a name of
-            :data:`~evseg_torch.synthetic_families.FAMILIES`.
+            :data:`~evseg_torch.synthetic.families.FAMILIES`.
         sensor_size: ``(H, W)``.
         duration: seconds per scene.
         true_models: give the segmenter each scene's true motions as ``initial_models`` (with
@@ -142,7 +142,7 @@ def _score_default(segmenter, seed: int, sensor_size, duration, true_models: boo
 
 def _score_family(segmenter, family: str, seed: int, sensor_size, duration, true_models: bool) -> SceneScore:
     from evseg_torch.evaluation.labelled import score_labelling
-    from evseg_torch.synthetic_families import family_kinds, make_family_scene
+    from evseg_torch.synthetic.families import family_kinds, make_family_scene
 
     scene = make_family_scene(family, seed, sensor_size=sensor_size, duration=duration)
     result = _segment(segmenter, scene, true_models)

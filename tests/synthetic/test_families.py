@@ -6,7 +6,7 @@ from scipy.ndimage import binary_dilation, binary_erosion
 
 from evseg_torch.errors import ConfigError
 from evseg_torch.synthetic import make_scene
-from evseg_torch.synthetic_families import KINDS, family_kinds, make_family_scene
+from evseg_torch.synthetic.families import KINDS, family_kinds, make_family_scene
 
 SIZE = (180, 240)
 WINDOW = 0.03

@@ -41,14 +41,9 @@ import numpy as np
 
 from evseg_torch.errors import ConfigError
 from evseg_torch.motion import MotionModel, make_motion_model
-from evseg_torch.synthetic import (
-    SyntheticScene,
-    _check_sensor_size,
-    _count,
-    _object_shape,
-    _positive,
-    make_scene,
-)
+from evseg_torch.synthetic.checks import check_count, check_positive, check_scene_size
+from evseg_torch.synthetic.draws import object_shape
+from evseg_torch.synthetic.scenes import SyntheticScene, make_scene
 
 __all__ = ["FAMILIES", "KINDS", "family_kinds", "make_family_scene"]
 
@@ -106,7 +101,7 @@ def family_kinds(family: str, seed: int) -> tuple[str, ...]:
     """
     if family not in FAMILIES:
         raise ConfigError(f"unknown scene family {family!r}; choose one of {list(FAMILIES)}")
-    seed = _count(seed, "seed", minimum=0)
+    seed = check_count(seed, "seed", minimum=0)
     primary, mix = KINDS[seed % len(KINDS)], seed // len(KINDS) % 3
     return (primary,) if mix == 0 else (primary, _PARTNERS[primary][mix - 1])
 
@@ -130,14 +125,14 @@ def make_family_scene(
         ConfigError: an argument is out of its range.
     """
     kinds = family_kinds(family, seed)
-    height, width = _check_sensor_size(sensor_size)
-    duration = _positive(duration, "duration")
+    height, width = check_scene_size(sensor_size)
+    duration = check_positive(duration, "duration")
     rng = np.random.default_rng(seed)
     scale = max(height, width) / _REFERENCE_WIDTH
     recipe = _recipe(kinds, rng)
     model = make_motion_model("affine4", (height, width))
     if recipe.ball_diameter is None:
-        shapes = [_object_shape(rng, (height, width), *_OBJECT_AREA) for _ in range(recipe.n_objects)]
+        shapes = [object_shape(rng, (height, width), *_OBJECT_AREA) for _ in range(recipe.n_objects)]
     else:
         shapes = [_ball(rng, (height, width), recipe.ball_diameter, scale) for _ in range(recipe.n_objects)]
     view_centre = np.array([model.principal_point])
