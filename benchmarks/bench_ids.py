@@ -2,9 +2,9 @@
 
 Each scene of the ``hard`` family (:mod:`evseg_torch.synthetic.families`) is generated 0.3 s long (its
 objects move through all ten 30 ms windows; a seed whose motions cannot stay in view that long is
-skipped) and streamed as ``evseg segment`` does. In every window,
-clusters are matched to the true layers (:func:`evseg_torch.metrics.match_clusters`, ambiguous and noise
-events left out); an object is *detected* when its matched cluster's event IoU is at least 0.5. For
+skipped) and streamed as ``evseg segment`` does. In every window, clusters are matched to the true
+layers (:func:`evseg_torch.evaluation.metrics.match_clusters`, ambiguous and noise events left out);
+an object is *detected* when its matched cluster's event IoU is at least 0.5. For
 every pair of consecutive windows in which an object is detected in both, its clusters' object ids are
 compared; printed: the fraction of such pairs that keep the id, per kind of scene and overall, against
 the cluster index (what ids were before tracking), and how often the background has id 0.
@@ -20,7 +20,7 @@ import numpy as np
 
 from evseg_torch.cli import _seed_range
 from evseg_torch.errors import ConfigError
-from evseg_torch.metrics import match_clusters, per_object_iou
+from evseg_torch.evaluation.metrics import match_clusters, per_object_iou
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic.families import family_kinds, make_family_scene
 from evseg_torch.threads import set_threads

@@ -35,8 +35,8 @@ from evseg_torch.config import SegmenterConfig, bundled_config, load_config, rep
 from evseg_torch.errors import EvsegError
 from evseg_torch.evaluation.eed import detection_rate, evaluate_sequence, load_eed_sequence
 from evseg_torch.evaluation.labelled import evaluate_labelled
+from evseg_torch.evaluation.metrics import OUTCOMES
 from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
-from evseg_torch.metrics import OUTCOMES
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.threads import set_threads
 
@@ -46,7 +46,7 @@ REAL = ROOT.parent / "shared" / "data" / "real"
 EED_SEQUENCES = ("what_is_background", "occlusions")
 # Column title and key of the scene sets' summaries and of EED's detection rates.
 SCENE_COLUMNS = {"accuracy": "accuracy", "IoU": "iou", "detect": "detection", "|count|": "abs_count_error"}
-# Why objects were missed (evseg_torch.metrics.object_outcomes).
+# Why objects were missed (evseg_torch.evaluation.metrics.object_outcomes).
 MISS_COLUMNS = OUTCOMES[1:]
 EED_COLUMNS = {
     "IoU>0.5": "detection_rate",

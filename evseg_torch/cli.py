@@ -464,7 +464,7 @@ def _set_threads(threads: int) -> None:
 
 
 def _demo(args) -> int:
-    from evseg_torch.metrics import labelling_accuracy, match_clusters, per_object_iou
+    from evseg_torch.evaluation.metrics import labelling_accuracy, match_clusters, per_object_iou
     from evseg_torch.panels import render_fig1, write_png
     from evseg_torch.pipeline import CascadedSegmenter
     from evseg_torch.synthetic import make_scene
@@ -771,8 +771,8 @@ def _summary_line(summary: dict) -> str:
 
 
 def _misses_line(summary: dict) -> str:
-    """How many objects were missed, and why (:func:`~evseg_torch.metrics.object_outcomes`)."""
-    from evseg_torch.metrics import OUTCOMES
+    """How many objects were missed, and why (:func:`~evseg_torch.evaluation.metrics.object_outcomes`)."""
+    from evseg_torch.evaluation.metrics import OUTCOMES
 
     misses = {outcome: int(summary[f"missed_{outcome}"]) for outcome in OUTCOMES[1:]}
     reasons = ", ".join(f"{count} {reason}" for reason, count in misses.items() if count)

@@ -7,10 +7,10 @@ import torch
 from evseg_torch import CascadedSegmenter, EventFormatError, Segmentation
 from evseg_torch.config import SegmenterConfig, bundled_config
 from evseg_torch.errors import ConfigError, ModelError
+from evseg_torch.evaluation.metrics import labelling_accuracy
 from evseg_torch.events import EventBatch, batch_windows, to_array, to_torch
 from evseg_torch.level_one.progressive_x import progressive_x
 from evseg_torch.level_two.discovery import Discovery
-from evseg_torch.metrics import labelling_accuracy
 from evseg_torch.motion import make_motion_model
 from evseg_torch.synthetic import make_scene
 

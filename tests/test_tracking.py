@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from evseg_torch.config import SegmenterConfig
+from evseg_torch.evaluation.metrics import match_clusters, per_object_iou
 from evseg_torch.events import EVENT_DTYPE
-from evseg_torch.metrics import match_clusters, per_object_iou
 from evseg_torch.motion import make_motion_model
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.runs import Job, Stopped, segment_file, with_window

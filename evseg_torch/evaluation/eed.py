@@ -23,7 +23,7 @@ For each ground-truth box at time ``t_b``:
    area; over the predicted box's area (under which a compensated object inside a larger GT box,
    drawn around a motion-blurred APS image, counts as detected); and the *nested* reading, the
    intersection over the smaller box's area with the two areas within 4x of each other
-   (:func:`~evseg_torch.metrics.boxes_nested`: the object inside a blurred GT box counts, a cluster box
+   (:func:`~.metrics.boxes_nested`: the object inside a blurred GT box counts, a cluster box
    spanning half the image around a small GT box does not).
 
 Detection rate = detected / evaluable boxes.
@@ -39,9 +39,9 @@ import numpy as np
 
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.errors import ConfigError, ReaderError
+from evseg_torch.evaluation.metrics import box_intersection, box_iou, box_of_points, boxes_nested
 from evseg_torch.events.images import event_counts
 from evseg_torch.io import load_eed_boxes, load_events
-from evseg_torch.metrics import box_intersection, box_iou, box_of_points, boxes_nested
 from evseg_torch.pipeline import CascadedSegmenter
 
 EED_SENSOR_SIZE = (180, 240)  # DAVIS240; the boxes are drawn on its 240x180 APS frames
@@ -106,7 +106,7 @@ class BoxResult:
 
     @property
     def detected_nested(self) -> bool:
-        """The nested reading: the matched and the GT box nest (:func:`~evseg_torch.metrics.boxes_nested`)."""
+        """The nested reading: the matched and the GT box nest (:func:`~.metrics.boxes_nested`)."""
         return self.evaluable and bool(boxes_nested(self.predicted_box, self.gt_box))
 
 

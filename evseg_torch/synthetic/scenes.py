@@ -145,7 +145,7 @@ class SyntheticScene:
     def boxes_at(self, t_s: float) -> np.ndarray:
         """Boxes ``[x, y, w, h]`` of each object's visible pixels at ``t_s``, float64 :math:`(K, 4)`.
 
-        As :func:`evseg_torch.metrics.box_of_points` of the mask's pixel coordinates: ``x, y`` the
+        As :func:`evseg_torch.evaluation.metrics.box_of_points` of the mask's pixel coordinates: ``x, y`` the
         smallest column and row, ``w, h`` the extents. A row is NaN where the object is not visible.
         """
         masks = self.masks_at(t_s)

@@ -5,13 +5,13 @@ import pytest
 import torch
 
 from evseg_torch.errors import ConfigError, EventFormatError, ModelError, ShapeError
+from evseg_torch.evaluation.metrics import labelling_accuracy, per_object_iou
 from evseg_torch.events import EventBatch, batch_windows, to_torch
 from evseg_torch.graphcut.alpha_expansion import labeling_energy
 from evseg_torch.level_two import segmenter as segmenter_module
 from evseg_torch.level_two.discovery import Discovery
 from evseg_torch.level_two.graph import event_graph, site_graph
 from evseg_torch.level_two.segmenter import GraphCutContrastSegmenter, LevelTwoResult
-from evseg_torch.metrics import labelling_accuracy, per_object_iou
 from evseg_torch.motion import Translation
 from evseg_torch.synthetic import make_scene
 

@@ -2,8 +2,7 @@ import numpy as np
 import pytest
 
 from evseg_torch.errors import ShapeError
-from evseg_torch.events import EVENT_DTYPE
-from evseg_torch.metrics import (
+from evseg_torch.evaluation.metrics import (
     box_intersection,
     box_iou,
     box_of_points,
@@ -19,6 +18,7 @@ from evseg_torch.metrics import (
     per_object_iou,
     success_rate,
 )
+from evseg_torch.events import EVENT_DTYPE
 
 
 class TestEventMetrics:
