@@ -465,9 +465,9 @@ def _set_threads(threads: int) -> None:
 
 def _demo(args) -> int:
     from evseg_torch.evaluation.metrics import labelling_accuracy, match_clusters, per_object_iou
-    from evseg_torch.panels import render_fig1, write_png
     from evseg_torch.pipeline import CascadedSegmenter
     from evseg_torch.synthetic import make_scene
+    from evseg_torch.viz.panels import render_fig1, write_png
 
     args.out.mkdir(parents=True, exist_ok=True)
     scene = make_scene(sensor_size=(180, 240), duration=0.03, n_objects=2, rng=args.seed)
@@ -596,7 +596,8 @@ def _evaluate_synthetic(args) -> int:
 def _evaluate_eed(args) -> int:
     from evseg_torch.config import bundled_config, load_config
     from evseg_torch.evaluation.eed import PAPER_TABLE_I, detection_rate, evaluate_sequence, load_eed_sequence
-    from evseg_torch.viz import boxes_figure, render_labels, save_figure
+    from evseg_torch.viz.figures import boxes_figure, save_figure
+    from evseg_torch.viz.render import render_labels
 
     config = load_config(args.config or bundled_config("eed"))
     window_ms = args.window_ms or config.window.window_ms

@@ -3,7 +3,7 @@
 The files of a result folder, their fields, dtypes, units and version (:data:`SCHEMA_VERSION`) are
 documented in the README's "Output files" section, which a test compares with what is written here;
 :func:`evseg_torch.results.load_results` reads a folder back. Figures and video frames come from
-:func:`evseg_torch.panels.render_fig1`.
+:func:`evseg_torch.viz.panels.render_fig1`.
 
 While a run goes on, everything is written into the folder's hidden ``.partial/`` with a checkpoint
 (``state.json``) after every batch of windows; nothing partial is ever presented as a result. When the
@@ -125,7 +125,7 @@ class SegmentationWriter:
         video: bool = False,
     ):
         if video:  # before anything is written: a missing extra leaves no partial folder
-            from evseg_torch.video import require_av
+            from evseg_torch.viz.video import require_av
 
             require_av()
         self.video = video
@@ -215,7 +215,7 @@ class SegmentationWriter:
         self._count(record)
         self._next_window = index + 1
         if self.save_images or self.video:
-            from evseg_torch.panels import VIDEO_PANELS, render_fig1, write_png
+            from evseg_torch.viz.panels import VIDEO_PANELS, render_fig1, write_png
 
             if self.save_images:
                 image = render_fig1(segmentation, title=f"window {index}", ids=record["object_ids"])
@@ -283,7 +283,7 @@ class SegmentationWriter:
         """Encode the waiting frames, in window order, into ``video.mp4``; returns the frame count."""
         import cv2
 
-        from evseg_torch.video import VideoWriter
+        from evseg_torch.viz.video import VideoWriter
 
         video = VideoWriter(self.partial / "video.mp4")
         try:

@@ -13,7 +13,7 @@ from evseg_torch.cli import main
 from evseg_torch.config import load_config
 from evseg_torch.errors import ResultsError
 from evseg_torch.motion import MOTION_MODELS
-from evseg_torch.viz import PALETTE
+from evseg_torch.viz.render import PALETTE
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -95,7 +95,7 @@ def test_load_results_round_trip(result_folder):
 
 
 def test_video_has_one_frame_per_window(result_folder):
-    from evseg_torch.video import read_frames
+    from evseg_torch.viz.video import read_frames
 
     frames = read_frames(result_folder / "video.mp4")
     n_windows = len(load_results(result_folder).windows)

@@ -1,45 +1,14 @@
+"""One window's Fig. 1 panels as one RGB image, and as a matplotlib figure."""
+
 import numpy as np
 import pytest
 
-from evseg_torch.errors import EvsegError, ShapeError
+from evseg_torch.errors import ShapeError
 from evseg_torch.level_one.features import Correspondences
-from evseg_torch.panels import PANEL_SIDE, VIDEO_PANELS, render_fig1, write_png
 from evseg_torch.pipeline import Segmentation
-from evseg_torch.viz import (
-    PALETTE,
-    UNLABELLED,
-    boxes_figure,
-    count_image,
-    fig1_figure,
-    label_colors,
-    render_labels,
-    save_figure,
-)
-
-
-def test_label_colors_are_a_function_of_the_id():
-    ids = np.array([0, 1, -1, 10, 11, 10])
-    colours = label_colors(ids)
-    np.testing.assert_array_equal(colours[0], PALETTE[0])
-    np.testing.assert_array_equal(colours[2], UNLABELLED)
-    np.testing.assert_array_equal(colours[3], colours[5])
-    np.testing.assert_array_equal(label_colors(ids[::-1]), colours[::-1])  # not a function of the order
-    beyond = label_colors(np.arange(10, 40))
-    assert len({tuple(c) for c in beyond}) == 30 and not any((c == UNLABELLED).all() for c in beyond)
-
-
-def test_count_image_rounds_and_drops_outside():
-    xy = np.array([[0.2, 0.4], [0.0, 0.0], [1.6, 1.0], [9.0, 0.0], [-1.0, 0.0]])
-    image = count_image(xy, (2, 3))
-    assert image[0, 0] == 2 and image[1, 2] == 1 and image.sum() == 3
-
-
-def test_render_labels_takes_the_majority_per_pixel():
-    xy = np.array([[1.0, 1.0], [1.0, 1.0], [1.0, 1.0], [0.0, 0.0]])
-    image = render_labels(xy, np.array([2, 2, 0, -1]), (2, 2))
-    np.testing.assert_array_equal(image[1, 1], PALETTE[2])
-    np.testing.assert_array_equal(image[0, 0], UNLABELLED)
-    np.testing.assert_array_equal(image[0, 1], [255, 255, 255])
+from evseg_torch.viz.figures import fig1_figure, save_figure
+from evseg_torch.viz.panels import PANEL_SIDE, VIDEO_PANELS, render_fig1, write_png
+from evseg_torch.viz.render import PALETTE
 
 
 def _segmentation(xy, labels, sensor_size, n_clusters):
@@ -109,28 +78,3 @@ def test_fig1_layout_follows_the_crops_shape():
         _segmentation([[5, 5], [6, 5]], [0, 0], (10, 200), 1), panels=VIDEO_PANELS, crop=False
     )
     assert first.shape == other.shape
-
-
-def test_boxes_figure(tmp_path):
-    image = np.full((20, 30, 3), 255, dtype=np.uint8)
-    panels = [
-        {
-            "image": image,
-            "gt_box": np.array([2.0, 3, 5, 4]),
-            "predicted_box": np.array([3.0, 3, 5, 4]),
-            "title": "a",
-        },
-        {
-            "image": image,
-            "gt_box": np.array([2.0, 3, 5, 4]),
-            "predicted_box": np.full(4, np.nan),
-            "title": "b",
-        },
-    ]
-    fig = boxes_figure(panels, title="EED", columns=5)
-    drawn = [ax for ax in fig.axes if ax.images]
-    assert len(drawn) == 2 and [len(ax.patches) for ax in drawn] == [2, 1]  # no box where none matched
-    assert drawn[1].get_title() == "b"
-    assert save_figure(fig, tmp_path / "boxes.png").stat().st_size > 1000
-    with pytest.raises(EvsegError, match="at least one panel"):
-        boxes_figure([])

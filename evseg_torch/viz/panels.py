@@ -14,7 +14,7 @@ Design, in the order the image is built:
   when enlarging (pixels stay visible), area-averaged when shrinking.
 * **Layout**: the grid of panels (rows x columns) whose overall shape is closest to 16:9 for the crop's
   aspect ratio, so wide crops stack and tall ones line up.
-* **Colours**: a function of the cluster's id (:func:`evseg_torch.viz.label_colors`), not of the
+* **Colours**: a function of the cluster's id (:func:`evseg_torch.viz.render.label_colors`), not of the
   window's cluster order; the id of cluster ``k`` is ``ids[k]``, ``k`` itself by default. A legend
   under the panels names each id with its event count, grey (no cluster) and white (no events).
 * **Title**: the caller's title, then the window's time span (first and last event, seconds), then
@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from evseg_torch.errors import ShapeError
-from evseg_torch.viz import UNLABELLED, label_colors, render_event_image, render_labels
+from evseg_torch.viz.render import UNLABELLED, label_colors, render_event_image, render_labels
 
 PANEL_SIDE = 400  # px, the longer side of each panel
 # Panels by name: the paper's Fig. 1 (a)-(d), the ground truth, and the raw events coloured by cluster.

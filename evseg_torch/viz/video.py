@@ -2,7 +2,7 @@
 
 PyAV binds FFmpeg's libraries in process and its wheels carry their own FFmpeg, so nothing is
 installed system-wide and no ``ffmpeg`` subprocess is piped to. Frames are the RGB images of
-:func:`evseg_torch.panels.render_fig1`; they are padded with white to even sizes, which H.264's
+:func:`evseg_torch.viz.panels.render_fig1`; they are padded with white to even sizes, which H.264's
 4:2:0 chroma needs. A frame per window at :data:`FRAMES_PER_SECOND` plays slower than real time (a
 30 ms window lasts 0.1 s on screen), so that each window's clusters can be read.
 """
