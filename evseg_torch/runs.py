@@ -23,7 +23,7 @@ import signal
 import sys
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +31,7 @@ import numpy as np
 
 from evseg_torch.config import SegmenterConfig, config_to_dict, replace_config
 from evseg_torch.errors import EvsegError
+from evseg_torch.workers import WindowPool, worker_signals
 
 log = logging.getLogger("evseg")
 
@@ -77,12 +78,6 @@ def stopped_by(err: BaseException) -> Stopped | None:
 def _raise_if_stopped() -> None:
     if _stop_requested:
         raise Stopped(_stop_requested[0])
-
-
-def worker_signals() -> None:
-    """In a worker process: the parent alone handles Ctrl-C, and SIGTERM ends the worker at once."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def output_folders(inputs: Sequence[str | Path], out: str | Path) -> list[Path]:
@@ -217,11 +212,15 @@ def segment_file(job: Job, progress: bool = False) -> dict:
         log.info("%s: already finished in %s", job.path.name, job.out)
         return writer.summary
     resume = writer.resume_point
-    with writer:
+    with writer, ExitStack() as stack:
+        segment_windows = None
+        if job.workers > 1:
+            pool = stack.enter_context(WindowPool(segmenter, job.workers, batch_size=job.batch_size))
+            segment_windows = pool.segment
         results = segmenter.stream(
             chunks,
             batch_size=job.batch_size,
-            workers=job.workers,
+            segment_windows=segment_windows,
             first_window=resume.next_window,
             max_windows=job.max_windows,
             initial_models=resume.models,

@@ -1,11 +1,12 @@
 """Worker processes that segment the windows of a batch side by side, one CPU core each.
 
 A stream's batch holds windows that do not depend on each other (each starts from the models of the
-batch before), so its windows can be shared out among processes. Each worker holds its own copy of the
-segmenter and runs :meth:`~evseg_torch.pipeline.CascadedSegmenter.segment_batch` on its share with one
-thread (torch's and OpenCV's: :mod:`evseg_torch.threads`). Level two gives every window of a batch the
-result it gets alone (bit for bit on one torch thread), so the results equal those of one process on one
-thread, window by window.
+batch before), so its windows can be shared out among processes: :meth:`WindowPool.segment` is a
+``segment_windows`` for :meth:`~evseg_torch.pipeline.CascadedSegmenter.stream`. Each worker holds its own
+copy of the segmenter and runs :meth:`~evseg_torch.pipeline.CascadedSegmenter.segment_batch` on its share
+with one thread (torch's and OpenCV's: :mod:`evseg_torch.threads`). Level two gives every window of a
+batch the result it gets alone (bit for bit on one torch thread), so the results equal those of one
+process on one thread, window by window.
 
 Processes, not threads: PyMaxflow holds the GIL through every graph cut, and level one is mostly
 Python. They start the platform's default way, as torch's DataLoader workers do: forked on Linux
@@ -16,21 +17,28 @@ Python. They start the platform's default way, as torch's DataLoader workers do:
 from __future__ import annotations
 
 import multiprocessing
+import signal
 from collections.abc import Sequence
 
 import numpy as np
 
+from evseg_torch.errors import ConfigError
 from evseg_torch.threads import set_threads
+from evseg_torch.validation import check_integer
 
-__all__ = ["WindowPool"]
+__all__ = ["WindowPool", "worker_signals"]
 
 _segmenter = None  # each worker's own copy, set once by _start
 
 
+def worker_signals() -> None:
+    """In a worker process: the parent alone handles Ctrl-C, and SIGTERM ends the worker at once."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _start(segmenter) -> None:
     global _segmenter
-    from evseg_torch.runs import worker_signals
-
     worker_signals()
     set_threads(1)
     _segmenter = segmenter
@@ -45,11 +53,31 @@ class WindowPool:
 
     Args:
         segmenter: a :class:`~evseg_torch.pipeline.CascadedSegmenter` (pickled once per worker).
-        workers: number of processes, at least 2.
+        workers: number of processes, at least 1 (2 or more to share anything out).
+        batch_size: the windows of the batches to come, if known; the workers share out the windows of
+            one batch, so they must not outnumber them.
+
+    Raises:
+        ConfigError: ``workers`` is not a positive integer, or exceeds ``batch_size``.
+
+    Examples:
+        >>> from evseg_torch.pipeline import CascadedSegmenter
+        >>> from evseg_torch.synthetic import make_scene
+        >>> events = make_scene((90, 120), duration=0.06, n_objects=1, rng=0).events
+        >>> segmenter = CascadedSegmenter((90, 120))
+        >>> with WindowPool(segmenter, 2, batch_size=2) as pool:  # doctest: +SKIP
+        ...     results = segmenter.stream(events, window_ms=30, batch_size=2, segment_windows=pool.segment)
+        ...     [result.window_index for result in results]
+        [0, 1]
     """
 
-    def __init__(self, segmenter, workers: int) -> None:
-        self.workers = workers
+    def __init__(self, segmenter, workers: int, batch_size: int | None = None) -> None:
+        self.workers = check_integer(workers, "workers", at_least=1)
+        if batch_size is not None and workers > batch_size:
+            raise ConfigError(
+                f"workers ({workers}) must not exceed batch_size ({batch_size}): the workers share out "
+                "the windows of one batch"
+            )
         self._pool = multiprocessing.get_context().Pool(workers, initializer=_start, initargs=(segmenter,))
 
     def segment(self, windows: Sequence, initial_models) -> list:

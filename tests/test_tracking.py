@@ -17,6 +17,7 @@ from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.runs import Job, Stopped, segment_file, with_window
 from evseg_torch.synthetic import make_scene
 from evseg_torch.synthetic.families import make_family_scene
+from evseg_torch.threads import set_threads
 from evseg_torch.tracking import (
     ObjectTracker,
     TrackedClusters,
@@ -25,6 +26,7 @@ from evseg_torch.tracking import (
     match_objects,
     shared_motion_groups,
 )
+from evseg_torch.workers import WindowPool
 
 SIZE = (90, 120)
 MOTION = make_motion_model("translation", SIZE)
@@ -204,10 +206,13 @@ def test_single_windows_are_numbered_as_a_streams_first(one_thread):
 
 
 def test_workers_and_batches_do_not_change_ids(one_thread):
+    set_threads(1)  # workers forked while OpenCV runs its own thread pool would hang in it
     scene = make_scene(SIZE, 0.15, n_objects=2, n_events=6000, rng=5)
     segmenter = CascadedSegmenter(SIZE)
     one = list(segmenter.stream(scene.events, window_ms=30, batch_size=3))
-    shared = list(segmenter.stream(scene.events, window_ms=30, batch_size=3, workers=2))
+    with WindowPool(segmenter, 2, batch_size=3) as pool:
+        stream = segmenter.stream(scene.events, window_ms=30, batch_size=3, segment_windows=pool.segment)
+        shared = list(stream)
     for a, b in zip(one, shared, strict=True):
         np.testing.assert_array_equal(a.object_ids, b.object_ids)
     # The ids are the tracker's over the windows in order, not restarted with each batch.
