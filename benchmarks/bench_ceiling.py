@@ -21,7 +21,8 @@ import numpy as np
 import torch
 from bench_quality import add_overrides  # the benchmarks' one KEY=VALUE option (run as a script)
 
-from evseg_torch.cli import _seed_range
+from evseg_torch.app.cli.options import seed_range
+from evseg_torch.app.threads import set_threads
 from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.evaluation.labelled import load_labelled, score_labelling
 from evseg_torch.evaluation.metrics import OUTCOMES
@@ -29,7 +30,6 @@ from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
 from evseg_torch.events import to_torch
 from evseg_torch.level_two.contrast import contrast_loss
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.threads import set_threads
 
 PROBE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "synthetic_probe"
 
@@ -79,8 +79,8 @@ def true_layers(model, events, truth, layers, motions, size, config) -> np.ndarr
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--hard", type=_seed_range, default=list(range(60)), help="hard-family seeds")
-    parser.add_argument("--own", type=_seed_range, default=list(range(20)), help="default-scene seeds")
+    parser.add_argument("--hard", type=seed_range, default=list(range(60)), help="hard-family seeds")
+    parser.add_argument("--own", type=seed_range, default=list(range(20)), help="default-scene seeds")
     add_overrides(parser, "flat config override, e.g. objects=false")
     args = parser.parse_args()
     set_threads(1)

@@ -18,12 +18,12 @@ from collections import defaultdict
 
 import numpy as np
 
-from evseg_torch.cli import _seed_range
+from evseg_torch.app.cli.options import seed_range
+from evseg_torch.app.threads import set_threads
 from evseg_torch.errors import ConfigError
 from evseg_torch.evaluation.metrics import match_clusters, per_object_iou
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic.families import family_kinds, make_family_scene
-from evseg_torch.threads import set_threads
 
 
 def detections(result, scene) -> dict[int, int]:
@@ -57,7 +57,7 @@ def id_pairs(results, scene) -> dict[str, list[bool]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--seeds", type=_seed_range, default=list(range(48)), help="scene seeds (default 0-47)"
+        "--seeds", type=seed_range, default=list(range(48)), help="scene seeds (default 0-47)"
     )
     parser.add_argument("--duration-ms", type=float, default=300.0, help="scene length (default 300 ms)")
     parser.add_argument("--batch-size", type=int, default=1, help="windows segmented together (default 1)")

@@ -4,6 +4,7 @@
 one, io, metrics) import without it.
 """
 
+from evseg_torch.app.results import SegmentationResults, load_results
 from evseg_torch.config import SegmenterConfig, load_config
 from evseg_torch.errors import (
     ConfigError,
@@ -16,7 +17,6 @@ from evseg_torch.errors import (
 )
 from evseg_torch.events import EVENT_DTYPE, EventBatch, as_events, batch_windows, to_torch
 from evseg_torch.io import load_events
-from evseg_torch.results import SegmentationResults, load_results
 
 __version__ = "0.1.0"
 

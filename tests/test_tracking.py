@@ -9,15 +9,16 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from evseg_torch.app.runs import Job, Stopped, segment_file, with_window
+from evseg_torch.app.threads import set_threads
+from evseg_torch.app.workers import WindowPool
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.evaluation.metrics import match_clusters, per_object_iou
 from evseg_torch.events import EVENT_DTYPE
 from evseg_torch.motion import make_motion_model
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.runs import Job, Stopped, segment_file, with_window
 from evseg_torch.synthetic import make_scene
 from evseg_torch.synthetic.families import make_family_scene
-from evseg_torch.threads import set_threads
 from evseg_torch.tracking import (
     ObjectTracker,
     TrackedClusters,
@@ -26,7 +27,6 @@ from evseg_torch.tracking import (
     match_objects,
     shared_motion_groups,
 )
-from evseg_torch.workers import WindowPool
 
 SIZE = (90, 120)
 MOTION = make_motion_model("translation", SIZE)
@@ -240,7 +240,7 @@ def test_a_resumed_run_writes_the_ids_of_an_uninterrupted_one(tmp_path, monkeypa
         if len(calls) == 5:
             raise Stopped(signal.SIGTERM)
 
-    monkeypatch.setattr("evseg_torch.runs._raise_if_stopped", stop_after_five)
+    monkeypatch.setattr("evseg_torch.app.runs._raise_if_stopped", stop_after_five)
     with pytest.raises(Stopped):
         segment_file(stopped)
     monkeypatch.undo()

@@ -12,17 +12,17 @@ import cv2
 import numpy as np
 import pytest
 
-from evseg_torch.cli import main
+from evseg_torch.app.cli import main
+from evseg_torch.app.output import SegmentationWriter
+from evseg_torch.app.runs import output_folders
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.data import EventWindowDataset
 from evseg_torch.errors import EventFormatError
 from evseg_torch.events import EVENT_DTYPE, check_sensor_size
-from evseg_torch.output import SegmentationWriter
-from evseg_torch.runs import output_folders
 from evseg_torch.synthetic import make_scene
 
 SIZE = (90, 120)
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _recording(path: Path, windows: int, events_per_window: int = 1500) -> Path:
@@ -67,7 +67,7 @@ def test_killed_runs_resume_to_the_uninterrupted_files(recording, tmp_path):
     # The kill points are found by watching the figures appear, so they land mid-run on any machine.
     options = ["--sensor-size", "90x120", "--save-images", "--video"]
     assert _segment(recording, "--out", tmp_path / "full", *options) == 0
-    command = [sys.executable, "-m", "evseg_torch.cli", "--quiet", "segment", str(recording)]
+    command = [sys.executable, "-m", "evseg_torch.app.cli", "--quiet", "segment", str(recording)]
     command += ["--out", str(tmp_path / "part"), *options]
     environment = {**os.environ, "PYTHONPATH": str(ROOT)}
     rng = np.random.default_rng(0)
@@ -282,7 +282,7 @@ def test_common_options_after_the_command_and_version(recording, tmp_path, capsy
 def test_a_stop_inside_an_import_is_a_stop():
     """A signal inside an import that wraps its errors (scipy's) comes out as an ImportError caused by
     our Stopped; stopped_by finds it, so that the CLI reports the stop (exit 143), not a traceback."""
-    from evseg_torch.runs import Stopped, stopped_by
+    from evseg_torch.app.runs import Stopped, stopped_by
 
     try:
         try:

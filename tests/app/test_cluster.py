@@ -9,13 +9,13 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from evseg_torch import cluster, runs
-from evseg_torch.cli import main
+from evseg_torch.app import cluster, runs
+from evseg_torch.app.cli import main
+from evseg_torch.app.output import OutputExistsError, folder_state
+from evseg_torch.app.runs import Job, segment_file
 from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.errors import EvsegError
-from evseg_torch.output import OutputExistsError, folder_state
-from evseg_torch.runs import Job, segment_file, segment_files
-from tests.test_cli import SIZE, _scene_file
+from tests.helpers.cli import SIZE, scene_file
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +34,7 @@ def _written(folder):
 
 
 def test_cluster_run_equals_a_local_run_and_lists_a_bad_input(tmp_path, client, capsys):
-    scenes = [_scene_file(tmp_path, seed=seed) for seed in (0, 1)]
+    scenes = [scene_file(tmp_path, seed=seed) for seed in (0, 1)]
     backwards = tmp_path / "back.txt"
     backwards.write_text("0.002 1 1 1\n0.001 1 1 0\n")  # found bad only when a worker reads it
     args = ["--quiet", "segment", "--window-ms", "20", "--sensor-size", SIZE, "--keep-going"]
@@ -58,19 +58,19 @@ def test_without_keep_going_a_failure_stops_the_run(tmp_path, client):
     bad.write_text("# no events\n")
     job = Job(path=bad, out=tmp_path / "out" / "empty", sensor_size=(90, 120), config=SegmenterConfig())
     with pytest.raises(EvsegError, match="no events"):
-        segment_files([job], client=client)
-    assert "no events" in segment_files([job], keep_going=True, client=client)[0][2]
+        cluster.segment_on_cluster(client, [job])
+    assert "no events" in cluster.segment_on_cluster(client, [job], keep_going=True)[0][2]
 
 
 def test_an_unexpected_failure_is_retried_then_reported(tmp_path, client):
     (tmp_path / "file").write_text("")
     job = replace(_job(tmp_path), out=tmp_path / "file" / "out")  # not a folder: an OSError on every try
     with pytest.raises(EvsegError, match=r"failed on the cluster: \w*Error"):
-        segment_files([job], client=client)
+        cluster.segment_on_cluster(client, [job])
 
 
 def _job(tmp_path, **options):
-    path = _scene_file(tmp_path)
+    path = scene_file(tmp_path)
     config = replace_config(SegmenterConfig(), window_ms=10.0)
     return Job(path=path, out=tmp_path / "out" / path.stem, sensor_size=(90, 120), config=config, **options)
 
@@ -143,7 +143,7 @@ def test_a_task_whose_worker_dies_resumes_on_another(tmp_path, client):
     marker = tmp_path / "died"
     client.run(_die_at_the_second_window, str(marker))
     try:
-        [(_, summary, error)] = segment_files([job], client=client)
+        [(_, summary, error)] = cluster.segment_on_cluster(client, [job])
     finally:
         client.run(_live_on)
     assert marker.exists() and error is None
@@ -159,7 +159,7 @@ def test_a_task_whose_worker_dies_resumes_on_another(tmp_path, client):
     [("local:0", "at least 1"), ("local:two", "at least 1")],
 )
 def test_bad_scheduler_gives_one_line(tmp_path, capsys, scheduler, message):
-    path = _scene_file(tmp_path)
+    path = scene_file(tmp_path)
     assert (
         main(["--quiet", "segment", str(path), "--out", str(tmp_path / "o"), "--scheduler", scheduler]) == 2
     )
@@ -168,7 +168,7 @@ def test_bad_scheduler_gives_one_line(tmp_path, capsys, scheduler, message):
 
 
 def test_workers_and_scheduler_exclude_each_other(tmp_path, capsys):
-    path = _scene_file(tmp_path)
+    path = scene_file(tmp_path)
     args = ["--quiet", "segment", str(path), "--out", str(tmp_path / "o"), "--workers", "2"]
     assert main([*args, "--scheduler", "local:2"]) == 2
     assert "--workers" in capsys.readouterr().err

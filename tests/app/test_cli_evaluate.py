@@ -1,250 +1,16 @@
+"""``evseg evaluate``: the synthetic, EED and labelled protocols, and other methods' predictions."""
+
 import json
-import subprocess
-import sys
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
-from evseg_torch.cli import main
+from evseg_torch.app.cli import main
 from evseg_torch.evaluation.labelled import load_labelled, score_labelling
-from evseg_torch.io import load_events
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic import make_scene
-from evseg_torch.synthetic.families import make_family_scene
-
-SIZE = "90x120"
-
-
-def _scene_file(tmp_path, seed=0, duration_ms=40):
-    assert (
-        main(
-            [
-                "--quiet",
-                "simulate",
-                "--out",
-                str(tmp_path / "scenes"),
-                "--seeds",
-                str(seed),
-                "--sensor-size",
-                SIZE,
-                "--duration-ms",
-                str(duration_ms),
-                "--objects",
-                "1",
-            ]
-        )
-        == 0
-    )
-    return tmp_path / "scenes" / f"scene_{seed:04d}.npz"
-
-
-def _error_line(capsys):
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("evseg: error: ")
-    return err[0]
-
-
-@pytest.mark.parametrize(
-    "command",
-    [[], ["segment"], ["demo"], ["simulate"], ["evaluate"], ["evaluate", "eed"], ["evaluate", "labelled"]],
-)
-def test_help_is_clear(command, capsys):
-    with pytest.raises(SystemExit) as stop:
-        main([*command, "--help"])
-    assert stop.value.code == 0
-    assert "usage: evseg" in capsys.readouterr().out
-
-
-def test_console_script_runs():
-    out = subprocess.run([sys.executable, "-m", "evseg_torch.cli", "--help"], capture_output=True, text=True)
-    assert out.returncode == 0 and "segment" in out.stdout
-
-
-def test_simulate_writes_readable_scenes(tmp_path):
-    path = _scene_file(tmp_path)
-    events = load_events(path)
-    data = np.load(path)
-    assert len(events) == len(data["labels"]) > 1000
-    assert (int(data["height"]), int(data["width"])) == (90, 120)
-    # The layout of the probe scenes, which `evaluate labelled` reads.
-    _, labels, ambiguous, size = load_labelled(path)
-    np.testing.assert_array_equal(labels, data["labels"])
-    assert size == (90, 120) and ambiguous.dtype == bool and 0 < ambiguous.sum() < 0.2 * len(events)
-
-
-def test_simulate_writes_a_scene_family(tmp_path):
-    assert main(["--quiet", "simulate", "--out", str(tmp_path), "--seeds", "2", "--family", "hard"]) == 0
-    scene = make_family_scene("hard", 2)
-    events, labels, ambiguous, size = load_labelled(tmp_path / "scene_0002.npz")
-    np.testing.assert_array_equal(events, scene.events)
-    np.testing.assert_array_equal(labels, scene.labels)
-    np.testing.assert_array_equal(ambiguous, scene.ambiguous)
-    assert size == (180, 240)
-
-
-def test_segment_writes_results_in_input_order(tmp_path):
-    path = _scene_file(tmp_path)
-    out = tmp_path / "out"
-    code = main(["--quiet", "segment", str(path), "--out", str(out), "--window-ms", "20", "--save-images"])
-    assert code == 0
-    folder = out / path.stem
-    labels = np.load(folder / "labels.npz")
-    n_events = len(load_events(path))
-    assert labels["labels"].shape == labels["window"].shape == (n_events,)
-    assert labels["labels"].dtype == np.int64
-    windows = [json.loads(line) for line in (folder / "models.jsonl").read_text().splitlines()]
-    assert [w["window"] for w in windows] == list(range(len(windows))) and len(windows) >= 2
-    for w in windows:
-        chunk = labels["labels"][w["first_event"] : w["first_event"] + w["n_events"]]
-        assert chunk.min() >= 0 and chunk.max() < len(w["models"])
-    summary = json.loads((folder / "summary.json").read_text())
-    assert summary["events"] == n_events and summary["windows"] == len(windows)
-    assert set(summary["timings_ms"]) == {"features", "level_one", "level_two", "total"}
-    assert (folder / "config.yaml").is_file()
-    assert len(list((folder / "images").glob("*.png"))) == len(windows)
-
-
-def test_config_by_bundled_name_or_file(tmp_path, monkeypatch, capsys):
-    path = _scene_file(tmp_path)
-    args = ["--quiet", "segment", str(path), "--window-ms", "20", "--max-windows", "1"]
-    monkeypatch.chdir(tmp_path)
-    assert main([*args, "--out", "named", "--config", "fast"]) == 0
-    written = yaml.safe_load((tmp_path / "named" / path.stem / "config.yaml").read_text())
-    assert written["level_two"]["discovery_rounds"] == 0
-    # A file of that name is the config, not the bundled one.
-    (tmp_path / "fast").write_text("level_two:\n  lambda_smooth: 12\n")
-    assert main([*args, "--out", "file", "--config", "fast"]) == 0
-    written = yaml.safe_load((tmp_path / "file" / path.stem / "config.yaml").read_text())
-    assert written["level_two"]["lambda_smooth"] == 12 and written["level_two"]["discovery_rounds"] == 2
-    capsys.readouterr()
-    assert main([*args, "--out", "none", "--config", "fastest"]) == 2
-    assert "fastest" in capsys.readouterr().err
-
-
-def test_segment_in_batches_writes_the_same_windows(tmp_path, capsys):
-    path = _scene_file(tmp_path)
-    written = {}
-    for batch_size in (1, 3):
-        out = tmp_path / f"out{batch_size}"
-        args = ["--quiet", "segment", str(path), "--out", str(out), "--window-ms", "10"]
-        assert main([*args, "--batch-size", str(batch_size)]) == 0
-        lines = (out / path.stem / "models.jsonl").read_text().splitlines()
-        written[batch_size] = [(w["window"], w["first_event"], w["n_events"]) for w in map(json.loads, lines)]
-    assert written[1] == written[3] and len(written[1]) >= 3
-    assert main(["--quiet", "segment", str(path), "--out", str(tmp_path / "x"), "--batch-size", "0"]) == 2
-    assert "--batch-size" in _error_line(capsys)
-
-
-def test_existing_output_needs_overwrite(tmp_path, capsys):
-    path = _scene_file(tmp_path)
-    out = tmp_path / "out"
-    (out / path.stem).mkdir(parents=True)
-    (out / path.stem / "keep.txt").write_text("mine")
-    assert main(["--quiet", "segment", str(path), "--out", str(out)]) == 2
-    assert "--overwrite" in _error_line(capsys)
-    assert (out / path.stem / "keep.txt").read_text() == "mine"
-    assert main(["--quiet", "segment", str(path), "--out", str(out), "--overwrite", "--window-ms", "40"]) == 0
-    assert not (out / path.stem / "keep.txt").exists()
-
-
-def _truncated_npz(tmp_path):
-    path = tmp_path / "cut.npz"
-    np.savez(path, events=np.zeros((100, 4)))
-    path.write_bytes(path.read_bytes()[:60])
-    return path
-
-
-def _garbled_npz(tmp_path):
-    path = tmp_path / "bad.npz"
-    with zipfile.ZipFile(path, "w") as archive:
-        archive.writestr("events.npy", b"not an array")
-    return path
-
-
-def _text(tmp_path, name, lines):
-    path = tmp_path / name
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-@pytest.mark.parametrize(
-    ("make", "args", "message"),
-    [
-        (lambda p: p / "missing.txt", ["--sensor-size", SIZE], "no such file"),
-        (lambda p: _text(p, "events.xyz", ["0 1 1 1"]), ["--sensor-size", SIZE], "unknown event file suffix"),
-        (_truncated_npz, ["--sensor-size", SIZE], "cut.npz"),
-        (_garbled_npz, ["--sensor-size", SIZE], "bad.npz"),
-        (lambda p: _text(p, "far.txt", ["0.0 500 1 1"]), ["--sensor-size", SIZE], "outside the sensor"),
-        (lambda p: _text(p, "back.txt", ["0.002 1 1 1", "0.001 1 1 0"]), ["--sensor-size", SIZE], "decrease"),
-        (lambda p: _text(p, "empty.txt", ["# no events"]), ["--sensor-size", SIZE], "no events"),
-        (
-            lambda p: _text(p, "ok.txt", ["0.0 1 1 1"]),
-            ["--sensor-size", SIZE, "--events-per-window", "0"],
-            "at least 1",
-        ),
-        (
-            lambda p: _text(p, "ok2.txt", ["0.0 1 1 1"]),
-            ["--sensor-size", SIZE, "--window-ms", "-5"],
-            "positive",
-        ),
-    ],
-)
-def test_bad_input_gives_one_line_and_exit_2(tmp_path, capsys, make, args, message):
-    path = make(tmp_path)
-    assert main(["--quiet", "segment", str(path), "--out", str(tmp_path / "out"), *args]) == 2
-    assert message in _error_line(capsys)
-
-
-def test_bad_sensor_size_argument(capsys):
-    with pytest.raises(SystemExit) as stop:
-        main(["segment", "x.txt", "--out", "o", "--sensor-size", "big"])
-    assert stop.value.code == 2
-    assert "HxW" in capsys.readouterr().err
-
-
-def test_demo_writes_figure_and_metrics(tmp_path):
-    assert main(["--quiet", "demo", "--out", str(tmp_path)]) == 0
-    metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert metrics["clusters"] == metrics["true_clusters"] == 3
-    assert metrics["accuracy"] > 0.8 and metrics["mean_imo_iou"] > 0.7  # 0.90 and 0.85 measured
-    assert (tmp_path / "demo.png").stat().st_size > 10_000
-
-
-def test_workers_segment_files_in_parallel(tmp_path):
-    first, second = _scene_file(tmp_path, seed=0), _scene_file(tmp_path, seed=1)
-    out = tmp_path / "out"
-    args = [
-        "--quiet",
-        "segment",
-        str(first),
-        str(second),
-        "--out",
-        str(out),
-        "--workers",
-        "2",
-        "--window-ms",
-        "40",
-    ]
-    assert main(args) == 0
-    for path in (first, second):
-        labels = np.load(out / path.stem / "labels.npz")["labels"]
-        assert labels.shape == (len(load_events(path)),) and labels.max() >= 0
-
-
-def test_workers_share_out_the_windows_of_one_file(tmp_path, capsys):
-    path = _scene_file(tmp_path)
-    written = {}
-    for workers in (1, 2):
-        out = tmp_path / f"out{workers}"
-        args = ["--quiet", "--threads", "1", "segment", str(path), "--out", str(out), "--window-ms", "10"]
-        assert main([*args, "--batch-size", "2", "--workers", str(workers)]) == 0
-        written[workers] = np.load(out / path.stem / "labels.npz")["labels"]
-    np.testing.assert_array_equal(written[1], written[2])
-    assert main(["--quiet", "segment", str(path), "--out", str(tmp_path / "x"), "--workers", "0"]) == 2
-    assert "--workers" in _error_line(capsys)
+from tests.helpers.cli import error_line, text_file
 
 
 def test_evaluate_eed_on_a_real_sequence(real_data, tmp_path, capsys):
@@ -370,15 +136,15 @@ def _labels_cut(tmp_path):
         (_labels_renamed, ["--label-field", "sensor_size"], "one integer label per event"),
         (lambda p: _labelled_file(p, 0, 1), ["--sensor-size", "50x50"], "outside the sensor"),
         (lambda p: _labelled_file(p, 0, 1), ["--ignore-field", "sensor_size"], "one flag per event"),
-        (lambda p: _text(p, "events.txt", ["0.0 1 1 1"]), [], "must be an .npz file"),
+        (lambda p: text_file(p, "events.txt", ["0.0 1 1 1"]), [], "must be an .npz file"),
     ],
 )
 def test_evaluate_labelled_bad_input(tmp_path, capsys, make, args, message):
     assert main(["--quiet", "evaluate", "labelled", str(make(tmp_path)), *args]) == 2
-    assert message in _error_line(capsys)
+    assert message in error_line(capsys)
 
 
-PROBE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "synthetic_probe"
+PROBE = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "synthetic_probe"
 
 
 def _truth_as_predictions(folder, paths):
@@ -473,7 +239,7 @@ def test_evaluate_labelled_bad_predictions(tmp_path, capsys, fields, args, messa
     pred = tmp_path / "pred.npz"
     np.savez(pred, **fields(len(np.load(path)["label"])))
     assert main(["--quiet", "evaluate", "labelled", str(path), "--predictions", str(pred), *args]) == 2
-    assert message in _error_line(capsys)
+    assert message in error_line(capsys)
 
 
 def test_evaluate_labelled_prediction_count_and_folder(tmp_path, capsys):
@@ -481,13 +247,13 @@ def test_evaluate_labelled_prediction_count_and_folder(tmp_path, capsys):
     folder = _truth_as_predictions(tmp_path / "net", paths[:1])
     command = ["--quiet", "evaluate", "labelled", *map(str, paths), "--predictions"]
     assert main([*command, str(folder / "probe_0.npy")]) == 2
-    assert "1 predictions for 2 labelled files" in _error_line(capsys)
+    assert "1 predictions for 2 labelled files" in error_line(capsys)
     assert main([*command, str(folder)]) == 2
-    assert f"{folder}: holds no prediction probe_1.npz/.npy" in _error_line(capsys)
+    assert f"{folder}: holds no prediction probe_1.npz/.npy" in error_line(capsys)
 
 
 def test_evaluate_labelled_fails_before_any_progress(tmp_path, capsys):
     """A bad second file is reported alone: no progress bar is drawn before the files are checked."""
     paths = [_labelled_file(tmp_path, 0, 1), tmp_path / "missing.npz"]
     assert main(["evaluate", "labelled", *map(str, paths)]) == 2
-    assert "missing.npz: no such file" in _error_line(capsys)
+    assert "missing.npz: no such file" in error_line(capsys)

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from evseg_torch import load_results
-from evseg_torch.cli import main
+from evseg_torch.app.cli import main
 from evseg_torch.config import load_config
 from evseg_torch.errors import ResultsError
 from evseg_torch.motion import MOTION_MODELS
 from evseg_torch.viz.render import PALETTE
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = Path(__file__).resolve().parents[2] / "README.md"
 
 
 def documented_fields() -> dict[str, set[str]]:

@@ -2,11 +2,11 @@ import cv2
 import pytest
 import torch
 
-from evseg_torch.cli import main
+from evseg_torch.app.cli import main
+from evseg_torch.app.threads import set_threads
+from evseg_torch.app.workers import WindowPool
 from evseg_torch.errors import ConfigError
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.threads import set_threads
-from evseg_torch.workers import WindowPool
 
 
 @pytest.fixture

@@ -1,7 +1,7 @@
 """Read an ``evseg segment`` result folder back (the files of the README's "Output files").
 
 :func:`load_results` checks the folder's ``schema_version`` against the one this version writes
-(:data:`evseg_torch.output.SCHEMA_VERSION`) and refuses, in one line, a folder that is not a result, is
+(:data:`evseg_torch.app.output.SCHEMA_VERSION`) and refuses, in one line, a folder that is not a result, is
 unfinished, or was written by a newer evseg. Labels are loaded whole (16 bytes per event); the
 per-window models come as :class:`WindowModels`, with their parameters' names and units.
 """
@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from evseg_torch.app.output import SCHEMA_VERSION
 from evseg_torch.config import SegmenterConfig, load_config
 from evseg_torch.errors import ResultsError
-from evseg_torch.output import SCHEMA_VERSION
 from evseg_torch.tracking import TrackedClusters
 
 

@@ -4,7 +4,7 @@ A stream's batch holds windows that do not depend on each other (each starts fro
 batch before), so its windows can be shared out among processes: :meth:`WindowPool.segment` is a
 ``segment_windows`` for :meth:`~evseg_torch.pipeline.CascadedSegmenter.stream`. Each worker holds its own
 copy of the segmenter and runs :meth:`~evseg_torch.pipeline.CascadedSegmenter.segment_batch` on its share
-with one thread (torch's and OpenCV's: :mod:`evseg_torch.threads`). Level two gives every window of a
+with one thread (torch's and OpenCV's: :mod:`evseg_torch.app.threads`). Level two gives every window of a
 batch the result it gets alone (bit for bit on one torch thread), so the results equal those of one
 process on one thread, window by window.
 
@@ -22,8 +22,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from evseg_torch.app.threads import set_threads
 from evseg_torch.errors import ConfigError
-from evseg_torch.threads import set_threads
 from evseg_torch.validation import check_integer
 
 __all__ = ["WindowPool", "worker_signals"]

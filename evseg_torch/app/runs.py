@@ -2,7 +2,7 @@
 
 * **One folder per input**, named by the input's stem; when two inputs of a run share a stem, each of
   them is named by its parent folders too (``eed_occlusions-events``), as many as tell them apart
-  (:func:`output_folders`). A folder never receives another input's results (:mod:`evseg_torch.output`).
+  (:func:`output_folders`). A folder never receives another input's results (:mod:`evseg_torch.app.output`).
 * **Resumable**: results go to the folder's ``.partial/`` with a checkpoint after every batch of windows
   and are published when complete; a stopped run resumes from its checkpoint and ends with the files an
   uninterrupted run writes (windows after a checkpoint are segmented again, from the same models, and
@@ -10,9 +10,9 @@
 * **Stopping**: SIGTERM and SIGINT both raise :class:`Stopped` in the main process
   (:func:`stop_on_signals`); the flag it also sets is checked after every window, so an interrupt that
   lands where Python ignores exceptions (a finaliser) still stops the run at the next window.
-* **Many inputs**: one after another, file by file in worker processes, or one task per input on a
-  Dask cluster (:mod:`evseg_torch.cluster`); with ``keep_going`` a bad input is reported and the others
-  are segmented (:func:`segment_files`).
+* **Many inputs**: one after another, or file by file in worker processes (:func:`segment_files`); with
+  ``keep_going`` a bad input is reported and the others are segmented. :mod:`evseg_torch.app.cluster`
+  runs the same jobs as tasks on a Dask cluster, each by :func:`segment_file`.
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from evseg_torch.app.workers import WindowPool, worker_signals
 from evseg_torch.config import SegmenterConfig, config_to_dict, replace_config
 from evseg_torch.errors import EvsegError
-from evseg_torch.workers import WindowPool, worker_signals
 
 log = logging.getLogger("evseg")
 
@@ -132,7 +132,7 @@ class Job:
         batch_size, workers: as in :meth:`~evseg_torch.pipeline.CascadedSegmenter.stream`.
         save_images: write one figure per window.
         video: write ``video.mp4``, one frame per window.
-        overwrite, resume: as in :class:`~evseg_torch.output.SegmentationWriter`.
+        overwrite, resume: as in :class:`~evseg_torch.app.output.SegmentationWriter`.
         chunk_size: events read at a time.
         topic: ROS bags: the topic of event arrays (``None``: the first).
         device: torch device of level two.
@@ -174,8 +174,93 @@ class Job:
         }
 
 
+def plan_jobs(
+    inputs: Sequence[str],
+    out: str | Path,
+    config: SegmenterConfig,
+    *,
+    sensor_size: tuple[int, int] | None = None,
+    topic: str | None = None,
+    chunk_size: int = 1_000_000,
+    workers: int = 1,
+    keep_going: bool = False,
+    **options,
+) -> tuple[list[Job], list[str]]:
+    """The jobs of a run: each input's folder (:func:`output_folders`), sensor size and options.
+
+    Args:
+        inputs: the run's input paths, each a file of a known format or a folder of a known layout.
+        out: the output root.
+        config: the configuration.
+        sensor_size: ``(H, W)`` for files that store none (see :func:`evseg_torch.io.resolve_sensor_size`);
+            with neither, the smallest size that holds the events (one extra pass, logged).
+        topic, chunk_size: as in :class:`Job`.
+        workers: the run's processes: with one input they share out its windows, when its batches hold
+            at least as many (otherwise one process runs, with a warning); with several, the files.
+        keep_going: report an input that cannot be read (one line) and plan the others.
+        **options: the other fields of :class:`Job` (``start_s``, ``end_s``, ``max_windows``,
+            ``batch_size``, ``save_images``, ``video``, ``overwrite``, ``resume``, ``device``).
+
+    Returns:
+        The jobs, in input order, and (with ``keep_going``) the lines reporting the inputs left out.
+
+    Raises:
+        EvsegError: the same input is given twice, or, without ``keep_going``, an input is not a known
+            format or its sensor size is wrong.
+        OSError: an input cannot be read, without ``keep_going``.
+    """
+    from evseg_torch.io import reader_for, resolve_sensor_size, scan_sensor_size
+
+    batch_size = options.get("batch_size", 1)
+    workers_per_file = 1
+    if len(inputs) == 1 and workers > 1:
+        if batch_size < workers:
+            log.warning(
+                "evseg: --workers %d has nothing to share with --batch-size %d on one input: one process "
+                "runs (pass --batch-size %d or more to share each batch's windows)",
+                workers,
+                batch_size,
+                workers,
+            )
+        else:
+            workers_per_file = workers
+    jobs, failed = [], []
+    folders = output_folders(inputs, out)
+    for name, folder in zip(inputs, folders, strict=True):
+        try:
+            reader_for(name)  # a file of a known format or a folder of a known layout
+            path = Path(name)
+            size = resolve_sensor_size(path, sensor_size, topic=topic)
+            if size is None:
+                size = scan_sensor_size(path, chunk_size, topic=topic)
+                log.info(
+                    "%s stores no sensor size: %dx%d, the smallest that holds its events (or pass "
+                    "--sensor-size HxW)",
+                    path.name,
+                    *size,
+                )
+        except (EvsegError, OSError) as err:
+            if not keep_going:
+                raise
+            failed.append(failure(name, err))
+            continue
+        jobs.append(
+            Job(
+                path=path,
+                out=folder,
+                sensor_size=size,
+                config=config,
+                workers=workers_per_file,
+                chunk_size=chunk_size,
+                topic=topic,
+                **options,
+            )
+        )
+    return jobs, failed
+
+
 def segment_file(job: Job, progress: bool = False) -> dict:
-    """Segment one recording window by window into its output folder (see :mod:`evseg_torch.output`).
+    """Segment one recording window by window into its output folder (see :mod:`evseg_torch.app.output`).
 
     Args:
         job: the input and its options.
@@ -190,8 +275,8 @@ def segment_file(job: Job, progress: bool = False) -> dict:
     """
     from tqdm.auto import tqdm
 
+    from evseg_torch.app.output import SegmentationWriter
     from evseg_torch.io import iter_event_chunks
-    from evseg_torch.output import SegmentationWriter
     from evseg_torch.pipeline import CascadedSegmenter
 
     started = time.perf_counter()
@@ -314,19 +399,18 @@ class TimeRange:
         return f"between {self.start_s or 0:g} s and {end}"
 
 
-def segment_files(
-    jobs: Sequence[Job], workers: int = 1, keep_going: bool = False, progress: bool = False, client=None
-):
-    """Segment several recordings, one after another, file by file in ``workers`` processes, or on a cluster.
+def segment_files(jobs: Sequence[Job], workers: int = 1, keep_going: bool = False, progress: bool = False):
+    """Segment several recordings, one after another or file by file in ``workers`` processes.
+
+    On a Dask cluster, :func:`evseg_torch.app.cluster.segment_on_cluster` segments the same jobs, with the
+    same results.
 
     Args:
         jobs: the inputs.
         workers: processes sharing out the files (one torch thread each); with one job its ``workers``
-            field shares out windows instead. Not used with ``client``.
+            field shares out windows instead.
         keep_going: report a bad input (one line) and go on with the others; otherwise stop at the first.
         progress: progress bars.
-        client: a Dask ``distributed.Client``: each job is one task on its cluster, retried if it fails
-            unexpectedly, with the results it gets here (see :mod:`evseg_torch.cluster`).
 
     Returns:
         One ``(job, summary or None, error message or None)`` per job, in order (with ``keep_going``,
@@ -337,10 +421,6 @@ def segment_files(
         EvsegError: a job failed and ``keep_going`` is off.
         Stopped: a signal stopped the run.
     """
-    if client is not None:
-        from evseg_torch.cluster import segment_on_cluster
-
-        return segment_on_cluster(client, jobs, keep_going, progress)
     outcomes = []
     if workers <= 1 or len(jobs) == 1:
         for job in jobs:
@@ -386,7 +466,7 @@ def failure(path, err: BaseException) -> str:
 
 
 def _file_worker() -> None:
-    from evseg_torch.threads import set_threads
+    from evseg_torch.app.threads import set_threads
 
     worker_signals()
     set_threads(1)

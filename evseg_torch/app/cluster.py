@@ -1,7 +1,7 @@
 """Segmenting many recordings on a Dask cluster: one task per input, on as many machines as it has.
 
-* **Tasks**: each input's :class:`~evseg_torch.runs.Job` is one task that runs
-  :func:`~evseg_torch.runs.segment_file` on a worker, with one torch thread, so its folder holds what a
+* **Tasks**: each input's :class:`~evseg_torch.app.runs.Job` is one task that runs
+  :func:`~evseg_torch.app.runs.segment_file` on a worker, with one torch thread, so its folder holds what a
   run on this machine writes (same files, same labels for the same config and seed). Workers read the
   inputs and write the outputs by the paths given here, made absolute: the same paths must name the same
   files on every machine (a shared filesystem), and every worker must import the same version of
@@ -29,8 +29,8 @@ from contextlib import contextmanager
 from dataclasses import replace
 
 from evseg_torch import __version__
+from evseg_torch.app.runs import Job, failure, one_line, segment_file
 from evseg_torch.errors import EvsegError
-from evseg_torch.runs import Job, failure, one_line, segment_file
 
 log = logging.getLogger("evseg")
 
@@ -84,7 +84,7 @@ def connect(scheduler: str) -> Iterator:
 
 
 def segment_on_cluster(client, jobs: Sequence[Job], keep_going: bool = False, progress: bool = False):
-    """Segment each job as one task on ``client``'s cluster; see :func:`evseg_torch.runs.segment_files`.
+    """Segment each job as one task on ``client``'s cluster; see :func:`evseg_torch.app.runs.segment_files`.
 
     Args:
         client: a ``distributed.Client``.
@@ -166,8 +166,8 @@ def _worker_version() -> str:
 
 def _segment_task(job: Job, run_id: str, index: int) -> tuple[dict | None, EvsegError | None]:
     """Run on a worker: segment one input; a bad input comes back as a value, so it is not retried."""
-    from evseg_torch.output import holds_run
-    from evseg_torch.threads import set_threads
+    from evseg_torch.app.output import holds_run
+    from evseg_torch.app.threads import set_threads
 
     set_threads(1)
     if _attempt(run_id, index) > 1 and holds_run(job.out, job.identity()):

@@ -2,7 +2,7 @@
 
 The files of a result folder, their fields, dtypes, units and version (:data:`SCHEMA_VERSION`) are
 documented in the README's "Output files" section, which a test compares with what is written here;
-:func:`evseg_torch.results.load_results` reads a folder back. Figures and video frames come from
+:func:`evseg_torch.app.results.load_results` reads a folder back. Figures and video frames come from
 :func:`evseg_torch.viz.panels.render_fig1`.
 
 While a run goes on, everything is written into the folder's hidden ``.partial/`` with a checkpoint
