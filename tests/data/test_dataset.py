@@ -10,7 +10,7 @@ from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
 from evseg_torch.evaluation.labelled import load_labelled
 from evseg_torch.events import EVENT_DTYPE, EventBatch, iter_windows
 from evseg_torch.io import load_events, save_evimo
-from tests.io._writers import HEIGHT, WIDTH, WRITERS, make_events
+from tests.helpers.io import HEIGHT, WIDTH, WRITERS, make_events
 
 PROBE = "scene_200.npz"
 

@@ -16,7 +16,7 @@ from evseg_torch.io import (
     read_time_span,
     reader_for,
 )
-from tests.io._writers import HEIGHT, WIDTH, make_events
+from tests.helpers.io import HEIGHT, WIDTH, make_events
 
 FRAME_IDS = [3, 4, 5]
 
