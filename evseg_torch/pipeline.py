@@ -10,7 +10,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
-from numbers import Integral, Real
+from numbers import Real
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +32,7 @@ from evseg_torch.tracking import (
     shared_motion_groups,
     window_duration,
 )
+from evseg_torch.validation import check_integer
 
 _MAX_SPAN_US = np.iinfo(np.int64).max
 # Corner responses and Lucas-Kanade pyramids need a few pixels each way; smaller sensors skip level one.
@@ -309,14 +310,11 @@ class CascadedSegmenter(nn.Module):
             ConfigError: ``batch_size`` is not a positive integer, or ``first_window``, ``max_windows`` or
                 ``next_object_id`` is out of range.
         """
-        for name, value, least in (
-            ("batch_size", batch_size, 1),
-            ("first_window", first_window, 0),
-            ("max_windows", 1 if max_windows is None else max_windows, 1),
-            ("next_object_id", next_object_id, 1),
-        ):
-            if isinstance(value, bool) or not isinstance(value, Integral) or value < least:
-                raise ConfigError(f"{name} must be an integer of at least {least}, got {value!r}")
+        check_integer(batch_size, "batch_size", at_least=1)
+        check_integer(first_window, "first_window")
+        if max_windows is not None:
+            check_integer(max_windows, "max_windows", at_least=1)
+        check_integer(next_object_id, "next_object_id", at_least=1)
         segment = self._segment if segment_windows is None else segment_windows
         chunks = _as_chunks(events, self.sensor_size)
         windows = self.config.window

@@ -11,9 +11,7 @@ reason one thread is the command line's default.
 
 from __future__ import annotations
 
-from numbers import Integral
-
-from evseg_torch.errors import ConfigError
+from evseg_torch.validation import check_integer
 
 __all__ = ["set_threads"]
 
@@ -27,8 +25,7 @@ def set_threads(threads: int) -> None:
     Raises:
         ConfigError: ``threads`` is not a positive integer.
     """
-    if isinstance(threads, bool) or not isinstance(threads, Integral) or threads < 1:
-        raise ConfigError(f"threads must be a positive integer, got {threads!r}")
+    threads = check_integer(threads, "threads", at_least=1)
     import cv2
     import torch
 

@@ -77,12 +77,6 @@ def check_number(value, name: str) -> float:
     return value
 
 
-def check_count(value, name: str, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
-        raise ConfigError(f"{name} must be an integer of at least {minimum}, got {value!r}")
-    return int(value)
-
-
 def check_polygons(shapes, n_objects: int) -> list[np.ndarray]:
     if len(shapes) != n_objects:
         raise ConfigError(f"object_shapes must hold {n_objects} polygons, got {len(shapes)}")

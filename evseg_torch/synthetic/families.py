@@ -41,9 +41,10 @@ import numpy as np
 
 from evseg_torch.errors import ConfigError
 from evseg_torch.motion import MotionModel, make_motion_model
-from evseg_torch.synthetic.checks import check_count, check_positive, check_scene_size
+from evseg_torch.synthetic.checks import check_positive, check_scene_size
 from evseg_torch.synthetic.draws import object_shape
 from evseg_torch.synthetic.scenes import SyntheticScene, make_scene
+from evseg_torch.validation import check_integer
 
 __all__ = ["FAMILIES", "KINDS", "family_kinds", "make_family_scene"]
 
@@ -101,7 +102,7 @@ def family_kinds(family: str, seed: int) -> tuple[str, ...]:
     """
     if family not in FAMILIES:
         raise ConfigError(f"unknown scene family {family!r}; choose one of {list(FAMILIES)}")
-    seed = check_count(seed, "seed", minimum=0)
+    seed = check_integer(seed, "seed")
     primary, mix = KINDS[seed % len(KINDS)], seed // len(KINDS) % 3
     return (primary,) if mix == 0 else (primary, _PARTNERS[primary][mix - 1])
 

@@ -51,7 +51,6 @@ from evseg_torch.errors import ConfigError
 from evseg_torch.events import EVENT_DTYPE, to_array
 from evseg_torch.motion import MotionModel
 from evseg_torch.synthetic.checks import (
-    check_count,
     check_layer_params,
     check_non_negative,
     check_object_size,
@@ -71,6 +70,7 @@ from evseg_torch.synthetic.simulation import (
     simulate_noise,
     threshold_for,
 )
+from evseg_torch.validation import check_integer
 
 __all__ = ["LayerMotion", "SyntheticScene", "make_scene"]
 
@@ -234,7 +234,7 @@ def make_scene(
     """
     height, width = check_scene_size(sensor_size)
     duration = check_positive(duration, "duration")
-    n_objects = check_count(n_objects, "n_objects", minimum=0)
+    n_objects = check_integer(n_objects, "n_objects")
     models = scene_motion_models(motion_model, object_motion_models, n_objects, (height, width))
     given = check_layer_params(layer_params, models)
     if contrast_threshold is not None and n_events is not None:
@@ -243,12 +243,12 @@ def make_scene(
         0.2 if contrast_threshold is None else check_positive(contrast_threshold, "contrast_threshold")
     )
     if n_events is not None:
-        n_events = check_count(n_events, "n_events", minimum=1)
+        n_events = check_integer(n_events, "n_events", at_least=1)
     threshold_jitter = check_non_negative(threshold_jitter, "threshold_jitter")
     noise_rate_hz = check_non_negative(noise_rate_hz, "noise_rate_hz")
     if n_time_steps is not None:
-        n_time_steps = check_count(n_time_steps, "n_time_steps", minimum=1)
-    t0_us = check_count(t0_us, "t0_us", minimum=0)
+        n_time_steps = check_integer(n_time_steps, "n_time_steps", at_least=1)
+    t0_us = check_integer(t0_us, "t0_us")
     area_low, area_high = check_object_size(object_size)
     if object_shapes is not None:
         object_shapes = check_polygons(object_shapes, n_objects)
