@@ -9,7 +9,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from evseg_torch.app.runs import Job, Stopped, segment_file, with_window
+from evseg_torch.app.jobs import Job, with_window
+from evseg_torch.app.runs import segment_file
+from evseg_torch.app.signals import Stopped
 from evseg_torch.app.threads import set_threads
 from evseg_torch.app.workers import WindowPool
 from evseg_torch.config import SegmenterConfig
@@ -240,7 +242,7 @@ def test_a_resumed_run_writes_the_ids_of_an_uninterrupted_one(tmp_path, monkeypa
         if len(calls) == 5:
             raise Stopped(signal.SIGTERM)
 
-    monkeypatch.setattr("evseg_torch.app.runs._raise_if_stopped", stop_after_five)
+    monkeypatch.setattr("evseg_torch.app.runs.raise_if_stopped", stop_after_five)
     with pytest.raises(Stopped):
         segment_file(stopped)
     monkeypatch.undo()

@@ -1,6 +1,6 @@
 """Segmenting many recordings on a Dask cluster: one task per input, on as many machines as it has.
 
-* **Tasks**: each input's :class:`~evseg_torch.app.runs.Job` is one task that runs
+* **Tasks**: each input's :class:`~evseg_torch.app.jobs.Job` is one task that runs
   :func:`~evseg_torch.app.runs.segment_file` on a worker, with one torch thread, so its folder holds what a
   run on this machine writes (same files, same labels for the same config and seed). Workers read the
   inputs and write the outputs by the paths given here, made absolute: the same paths must name the same
@@ -29,7 +29,8 @@ from contextlib import contextmanager
 from dataclasses import replace
 
 from evseg_torch import __version__
-from evseg_torch.app.runs import Job, failure, one_line, segment_file
+from evseg_torch.app.jobs import Job, failure, one_line
+from evseg_torch.app.runs import segment_file
 from evseg_torch.errors import EvsegError
 
 log = logging.getLogger("evseg")

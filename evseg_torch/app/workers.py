@@ -17,24 +17,18 @@ Python. They start the platform's default way, as torch's DataLoader workers do:
 from __future__ import annotations
 
 import multiprocessing
-import signal
 from collections.abc import Sequence
 
 import numpy as np
 
+from evseg_torch.app.signals import worker_signals
 from evseg_torch.app.threads import set_threads
 from evseg_torch.errors import ConfigError
 from evseg_torch.validation import check_integer
 
-__all__ = ["WindowPool", "worker_signals"]
+__all__ = ["WindowPool"]
 
 _segmenter = None  # each worker's own copy, set once by _start
-
-
-def worker_signals() -> None:
-    """In a worker process: the parent alone handles Ctrl-C, and SIGTERM ends the worker at once."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _start(segmenter) -> None:

@@ -11,8 +11,10 @@ pytest.importorskip("distributed")
 
 from evseg_torch.app import cluster, runs
 from evseg_torch.app.cli import main
+from evseg_torch.app.jobs import Job
 from evseg_torch.app.output import OutputExistsError, folder_state
-from evseg_torch.app.runs import Job, segment_file
+from evseg_torch.app.runs import segment_file
+from evseg_torch.app.signals import Stopped
 from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.errors import EvsegError
 from tests.helpers.cli import SIZE, scene_file
@@ -78,15 +80,15 @@ def _job(tmp_path, **options):
 def _stop_after_first_window(monkeypatch):
     def stop():
         monkeypatch.undo()
-        raise runs.Stopped(signal.SIGTERM)
+        raise Stopped(signal.SIGTERM)
 
-    monkeypatch.setattr(runs, "_raise_if_stopped", stop)
+    monkeypatch.setattr(runs, "raise_if_stopped", stop)
 
 
 def test_a_retried_task_continues_its_own_stopped_run(tmp_path, monkeypatch):
     job = _job(tmp_path)
     _stop_after_first_window(monkeypatch)
-    with pytest.raises(runs.Stopped):
+    with pytest.raises(Stopped):
         segment_file(job)
     assert folder_state(job.out) == "stopped"
     # A first attempt runs the job as given: a stopped run it finds is refused, as on one machine.
@@ -109,7 +111,7 @@ def test_a_retried_task_continues_its_own_stopped_run(tmp_path, monkeypatch):
 def test_a_retry_does_not_resume_another_jobs_run(tmp_path, monkeypatch):
     job = _job(tmp_path)
     _stop_after_first_window(monkeypatch)
-    with pytest.raises(runs.Stopped):
+    with pytest.raises(Stopped):
         segment_file(job)
     monkeypatch.setattr(cluster, "_attempt", lambda run_id, index: 2)
     other = replace(job, config=replace_config(job.config, window_ms=15.0), overwrite=True)
@@ -121,7 +123,7 @@ def _die_at_the_second_window(marker):
     """In a worker: the first task to finish its second window ends the worker process, once."""
     import os
 
-    original, windows = runs._raise_if_stopped, []
+    original, windows = runs.raise_if_stopped, []
 
     def stop():
         windows.append(1)
@@ -131,11 +133,11 @@ def _die_at_the_second_window(marker):
         original()
 
     stop.original = original
-    runs._raise_if_stopped = stop
+    runs.raise_if_stopped = stop
 
 
 def _live_on():
-    runs._raise_if_stopped = getattr(runs._raise_if_stopped, "original", runs._raise_if_stopped)
+    runs.raise_if_stopped = getattr(runs.raise_if_stopped, "original", runs.raise_if_stopped)
 
 
 def test_a_task_whose_worker_dies_resumes_on_another(tmp_path, client):

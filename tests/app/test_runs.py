@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from evseg_torch.app.cli import main
+from evseg_torch.app.jobs import output_folders
 from evseg_torch.app.output import SegmentationWriter
-from evseg_torch.app.runs import output_folders
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.data import EventWindowDataset
 from evseg_torch.errors import EventFormatError
@@ -282,7 +282,7 @@ def test_common_options_after_the_command_and_version(recording, tmp_path, capsy
 def test_a_stop_inside_an_import_is_a_stop():
     """A signal inside an import that wraps its errors (scipy's) comes out as an ImportError caused by
     our Stopped; stopped_by finds it, so that the CLI reports the stop (exit 143), not a traceback."""
-    from evseg_torch.app.runs import Stopped, stopped_by
+    from evseg_torch.app.signals import Stopped, stopped_by
 
     try:
         try:

@@ -24,7 +24,8 @@ def main(argv: list[str] | None = None) -> int:
     0 ok; 1 some inputs failed (``--keep-going``); 2 our errors; 130 stopped by SIGINT (Ctrl-C), 143
     by SIGTERM (128 + the signal's number, as shells report it).
     """
-    from evseg_torch.app.runs import Stopped, one_line, stop_on_signals, stopped_by
+    from evseg_torch.app.jobs import one_line
+    from evseg_torch.app.signals import Stopped, stop_on_signals, stopped_by
 
     parser = build_parser()
     args = parser.parse_args(argv)

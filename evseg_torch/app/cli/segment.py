@@ -115,7 +115,8 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from evseg_torch.app.cluster import connect, segment_on_cluster
-    from evseg_torch.app.runs import plan_jobs, segment_files, with_window
+    from evseg_torch.app.jobs import plan_jobs, with_window
+    from evseg_torch.app.runs import segment_files
     from evseg_torch.config import SegmenterConfig, load_config
 
     config = load_config(args.config) if args.config else SegmenterConfig()
