@@ -307,13 +307,12 @@ class CascadedSegmenter(nn.Module):
             change them).
 
         Raises:
-            ConfigError: ``batch_size`` is not a positive integer, or ``first_window``, ``max_windows`` or
-                ``next_object_id`` is out of range.
+            ConfigError: ``batch_size``, ``first_window``, ``max_windows`` or ``next_object_id`` is not an
+                integer in its range.
         """
         check_integer(batch_size, "batch_size", at_least=1)
         check_integer(first_window, "first_window")
-        if max_windows is not None:
-            check_integer(max_windows, "max_windows", at_least=1)
+        check_integer(1 if max_windows is None else max_windows, "max_windows", at_least=1)
         check_integer(next_object_id, "next_object_id", at_least=1)
         segment = self._segment if segment_windows is None else segment_windows
         chunks = _as_chunks(events, self.sensor_size)
@@ -487,14 +486,9 @@ def _event_rows(events):
 
 
 def _batched(items: Iterable, size: int) -> Iterator[list]:
-    """Consecutive lists of ``size`` items (the last may be shorter)."""
-    batch = []
-    for item in items:
-        batch.append(item)
-        if len(batch) == size:
-            yield batch
-            batch = []
-    if batch:
+    """Consecutive lists of ``size`` items (the last may be shorter), read one list at a time."""
+    items = iter(items)
+    while batch := list(itertools.islice(items, size)):
         yield batch
 
 
