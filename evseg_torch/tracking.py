@@ -55,9 +55,8 @@ __all__ = [
 
 BACKGROUND_COVER = 0.5  # the background's compensated box covers at least this fraction of the sensor
 GATE_PX = 10.0  # px: least gate of a match
-# Chosen on 58 streamed scenes of the hard family (benchmarks/bench_ids.py, 636 pairs of windows): the
-# median centre with this weight and gate kept 98.0% of ids; box centres 96.5%, the distance alone
-# (weight 0) 97.6%, half this gate 97.3%.
+# The gate and the weight are chosen on streamed scenes of the hard family (benchmarks/bench_ids.py):
+# the fraction of ids an object keeps from window to window.
 GATE_SIZE = 1.0  # of the larger box's longer side, added to the gate
 MOTION_WEIGHT = 2.0  # of the models' difference over the window, against the distance (both px)
 SHARED_MOTION_PX = 1.0  # px over the window: models closer than this share a motion

@@ -3,10 +3,10 @@
 OpenCV runs its own loops (Lucas-Kanade's points, blurs, dilations) on a pool of its own, by default as
 many threads as the machine has cores, and ``torch.set_num_threads`` does not reach it. A process meant
 to use one core (each worker of ``--workers``, a Dask task) sets both; otherwise N such processes start N
-times the machine's cores in OpenCV threads, and a "one thread" timing runs level one's tracking on two
-(``docs/speed.md``). OpenCV's count does not change results (its loops are split over independent
-points and pixels); torch's can (a reduction split over more threads rounds otherwise), which is one
-reason one thread is the command line's default.
+times the machine's cores in OpenCV threads, and level one's tracking of a "one thread" process runs on
+several. OpenCV's count does not change results (its loops are split over independent points and
+pixels); torch's can (a reduction split over more threads rounds otherwise), which is one reason one
+thread is the command line's default.
 """
 
 from __future__ import annotations

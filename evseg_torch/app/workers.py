@@ -11,7 +11,9 @@ process on one thread, window by window.
 Processes, not threads: PyMaxflow holds the GIL through every graph cut, and level one is mostly
 Python. They start the platform's default way, as torch's DataLoader workers do: forked on Linux
 (nothing to re-import), spawned on macOS and Windows, where the calling script needs the usual
-``if __name__ == "__main__":`` guard.
+``if __name__ == "__main__":`` guard. A forked worker sets OpenCV's threads, which hangs if OpenCV's own
+thread pool was running in the parent: set the parent's threads first
+(:func:`~evseg_torch.app.threads.set_threads`, as ``evseg`` does).
 """
 
 from __future__ import annotations

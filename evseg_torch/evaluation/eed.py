@@ -7,11 +7,9 @@ For each ground-truth box at time ``t_b``:
    ``t_ref = t_b`` (``reference="box"``, the default), or the window's first event
    (``reference="window_start"``): the convention of EMSGC's output and of the IROS paper's figures,
    which puts the compensated clusters half a window before ``t_b``. On EED's ``occlusions`` the GT
-   boxes themselves lag the events: the density of events inside the boxes, relative to the image's,
-   peaks 15 ms before the box stamps (10.3 times the image's at -15 ms, 6.8 at 0 ms; medians over the
-   13 boxes of 5 ms slices), where the window-start convention compensates to. A window with fewer
-   than ``min_events`` events is *not evaluable* and reported separately (it counts in neither
-   numerator nor denominator).
+   boxes themselves lag the events: the density of events inside the boxes peaks before the box stamps,
+   about where the window-start convention compensates to. A window with fewer than ``min_events``
+   events is *not evaluable* and reported separately (it counts in neither numerator nor denominator).
 2. **Background rule**: the cluster holding the most events is the background (the ego-motion of a
    moving camera explains most events; EMSGC numbers clusters by size for the same reason).
 3. Each other cluster's events are warped by its own model to ``t_ref``; the cluster's box is the

@@ -1,8 +1,8 @@
 """The paper's Fig. 1 panels of one window as one RGB image, drawn with NumPy and OpenCV.
 
 One renderer serves the demo figure, the per-window PNGs of ``evseg segment --save-images`` and the
-frames of ``--video``. It avoids matplotlib on purpose: a matplotlib figure per window made a sparse
-recording's run 6.6-8.7 times as long, while NumPy images, OpenCV lines and text and OpenCV's PNG
+frames of ``--video``. It avoids matplotlib on purpose: a matplotlib figure per window costs several
+times the segmentation of a sparse window, while NumPy images, OpenCV lines and text and OpenCV's PNG
 encoder take a few milliseconds a window (README, "Output files").
 
 Design, in the order the image is built:
@@ -134,9 +134,9 @@ def render_fig1(
 def write_png(image: np.ndarray, path: str | Path) -> Path:
     """Write an RGB uint8 image as PNG with OpenCV's encoder, tuned for speed.
 
-    PNG's adaptive row filters took three quarters of the time of writing a figure; without them and
-    at zlib level 1, a figure takes a quarter of the time and ~20 % more bytes (measured on DVS128
-    windows, mostly white figures).
+    PNG's adaptive row filters cost most of the time of writing a figure, and the figures are mostly
+    white: without the filters and at zlib level 1, a figure is written several times as fast for a few
+    more bytes.
     """
     path = Path(path)
     options = [cv2.IMWRITE_PNG_COMPRESSION, 1]
