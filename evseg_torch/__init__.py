@@ -1,7 +1,7 @@
 """evseg_torch: event-camera motion segmentation by cascaded two-level multi-model fitting.
 
 ``CascadedSegmenter`` and ``Segmentation`` load torch on first use, so that NumPy-only parts (level
-one, io, metrics) import without it.
+one, io, the metrics) import without it.
 """
 
 from evseg_torch.app.results import SegmentationResults, load_results
