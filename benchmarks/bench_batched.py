@@ -25,10 +25,10 @@ import time
 import numpy as np
 import torch
 
+from evseg_torch.app.threads import set_threads
 from evseg_torch.events import to_torch
 from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter
 from evseg_torch.synthetic import make_scene
-from evseg_torch.threads import set_threads
 
 STAGES = ("graph", "data_term", "labelling", "refit", "discovery", "images")
 

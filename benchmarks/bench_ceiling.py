@@ -4,7 +4,7 @@ Level one is skipped (``level_one.initial_models: replace``) and level two start
 every layer (background and objects), then labels, refits, discovers (``discovery_rounds`` rounds, as in a
 cold window) and resolves objects as usual,
 scored as ``evseg evaluate synthetic`` (our scenes) and ``evseg evaluate labelled`` (the probe) score,
-with the objects missed for each reason (:func:`~evseg_torch.metrics.object_outcomes`).
+with the objects missed for each reason (:func:`~evseg_torch.evaluation.metrics.object_outcomes`).
 The gap to the pipeline's own figures is what level one's pool costs; what remains is the energy's own
 limit. Our generator's scenes carry their motions in the project's convention (the ``hard`` family and
 the default scenes). The probe's motions are given about each layer's own centre; they are moved to the
@@ -21,15 +21,15 @@ import numpy as np
 import torch
 from bench_quality import add_overrides  # the benchmarks' one KEY=VALUE option (run as a script)
 
-from evseg_torch.cli import _seed_range
+from evseg_torch.app.cli.options import seed_range
+from evseg_torch.app.threads import set_threads
 from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.evaluation.labelled import load_labelled, score_labelling
+from evseg_torch.evaluation.metrics import OUTCOMES
 from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
 from evseg_torch.events import to_torch
 from evseg_torch.level_two.objectives.contrast import contrast_loss
-from evseg_torch.metrics import OUTCOMES
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.threads import set_threads
 
 PROBE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "synthetic_probe"
 
@@ -79,8 +79,8 @@ def true_layers(model, events, truth, layers, motions, size, config) -> np.ndarr
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--hard", type=_seed_range, default=list(range(60)), help="hard-family seeds")
-    parser.add_argument("--own", type=_seed_range, default=list(range(20)), help="default-scene seeds")
+    parser.add_argument("--hard", type=seed_range, default=list(range(60)), help="hard-family seeds")
+    parser.add_argument("--own", type=seed_range, default=list(range(20)), help="default-scene seeds")
     add_overrides(parser, "flat config override, e.g. objects=false")
     args = parser.parse_args()
     set_threads(1)

@@ -19,13 +19,13 @@ import numpy as np
 import torch
 from bench_quality import override  # the benchmarks' one KEY=VALUE parser (run as a script)
 
-from evseg_torch.cli import _seed_range
+from evseg_torch.app.cli.options import seed_range
+from evseg_torch.app.threads import set_threads
 from evseg_torch.config import SegmenterConfig, bundled_config, load_config, replace_config
 from evseg_torch.evaluation.eed import load_eed_sequence
 from evseg_torch.evaluation.labelled import load_labelled
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.synthetic_families import make_family_scene
-from evseg_torch.threads import set_threads
+from evseg_torch.synthetic.families import make_family_scene
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -50,7 +50,7 @@ def windows(hard_seeds) -> list[tuple[str, np.ndarray, tuple[int, int], bool]]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--hard", type=_seed_range, default=list(range(20)), help="hard-family seeds")
+    parser.add_argument("--hard", type=seed_range, default=list(range(20)), help="hard-family seeds")
     parser.add_argument(
         "--before",
         type=override,

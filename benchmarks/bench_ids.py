@@ -1,10 +1,10 @@
 """Object ids across windows: how often an object detected in two consecutive windows keeps its id.
 
-Each scene of the ``hard`` family (:mod:`evseg_torch.synthetic_families`) is generated 0.3 s long (its
+Each scene of the ``hard`` family (:mod:`evseg_torch.synthetic.families`) is generated 0.3 s long (its
 objects move through all ten 30 ms windows; a seed whose motions cannot stay in view that long is
-skipped) and streamed as ``evseg segment`` does. In every window,
-clusters are matched to the true layers (:func:`evseg_torch.metrics.match_clusters`, ambiguous and noise
-events left out); an object is *detected* when its matched cluster's event IoU is at least 0.5. For
+skipped) and streamed as ``evseg segment`` does. In every window, clusters are matched to the true
+layers (:func:`evseg_torch.evaluation.metrics.match_clusters`, ambiguous and noise events left out);
+an object is *detected* when its matched cluster's event IoU is at least 0.5. For
 every pair of consecutive windows in which an object is detected in both, its clusters' object ids are
 compared; printed: the fraction of such pairs that keep the id, per kind of scene and overall, against
 the cluster index (what ids were before tracking), and how often the background has id 0.
@@ -18,12 +18,12 @@ from collections import defaultdict
 
 import numpy as np
 
-from evseg_torch.cli import _seed_range
+from evseg_torch.app.cli.options import seed_range
+from evseg_torch.app.threads import set_threads
 from evseg_torch.errors import ConfigError
-from evseg_torch.metrics import match_clusters, per_object_iou
+from evseg_torch.evaluation.metrics import match_clusters, per_object_iou
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.synthetic_families import family_kinds, make_family_scene
-from evseg_torch.threads import set_threads
+from evseg_torch.synthetic.families import family_kinds, make_family_scene
 
 
 def detections(result, scene) -> dict[int, int]:
@@ -57,7 +57,7 @@ def id_pairs(results, scene) -> dict[str, list[bool]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--seeds", type=_seed_range, default=list(range(48)), help="scene seeds (default 0-47)"
+        "--seeds", type=seed_range, default=list(range(48)), help="scene seeds (default 0-47)"
     )
     parser.add_argument("--duration-ms", type=float, default=300.0, help="scene length (default 300 ms)")
     parser.add_argument("--batch-size", type=int, default=1, help="windows segmented together (default 1)")

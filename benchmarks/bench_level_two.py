@@ -26,11 +26,11 @@ import time
 import numpy as np
 import torch
 
+from evseg_torch.app.threads import set_threads
 from evseg_torch.events import to_torch
 from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter
 from evseg_torch.level_two.energy.graph import event_graph, site_graph
 from evseg_torch.synthetic import make_scene
-from evseg_torch.threads import set_threads
 
 
 def make_window(n_events, n_objects, n_spurious, seed):

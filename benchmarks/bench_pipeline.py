@@ -22,10 +22,10 @@ import torch
 from bench_quality import add_overrides  # the benchmarks' one KEY=VALUE option (run as a script)
 
 from evseg_torch import CascadedSegmenter
+from evseg_torch.app.threads import set_threads
 from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.evaluation.eed import load_eed_sequence
 from evseg_torch.synthetic import make_scene
-from evseg_torch.threads import set_threads
 
 EED = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "eed_occlusions"
 STAGES = ("features", "level_one", "level_two", "total")

@@ -30,15 +30,15 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from evseg_torch.cli import _seed_range
+from evseg_torch.app.cli.options import seed_range
+from evseg_torch.app.threads import set_threads
 from evseg_torch.config import SegmenterConfig, bundled_config, load_config, replace_config
 from evseg_torch.errors import EvsegError
 from evseg_torch.evaluation.eed import detection_rate, evaluate_sequence, load_eed_sequence
 from evseg_torch.evaluation.labelled import evaluate_labelled
+from evseg_torch.evaluation.metrics import OUTCOMES
 from evseg_torch.evaluation.synthetic import evaluate_synthetic, summarize
-from evseg_torch.metrics import OUTCOMES
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.threads import set_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBE = ROOT.parent / "shared" / "data" / "synthetic_probe"
@@ -46,7 +46,7 @@ REAL = ROOT.parent / "shared" / "data" / "real"
 EED_SEQUENCES = ("what_is_background", "occlusions")
 # Column title and key of the scene sets' summaries and of EED's detection rates.
 SCENE_COLUMNS = {"accuracy": "accuracy", "IoU": "iou", "detect": "detection", "|count|": "abs_count_error"}
-# Why objects were missed (evseg_torch.metrics.object_outcomes).
+# Why objects were missed (evseg_torch.evaluation.metrics.object_outcomes).
 MISS_COLUMNS = OUTCOMES[1:]
 EED_COLUMNS = {
     "IoU>0.5": "detection_rate",
@@ -150,14 +150,14 @@ def main() -> int:
     )
     add_overrides(parser, "flat config override of every set, e.g. lambda_smooth=40")
     parser.add_argument(
-        "--seeds", type=_seed_range, default=list(range(20)), help="synthetic scene seeds (default 0-19)"
+        "--seeds", type=seed_range, default=list(range(20)), help="synthetic scene seeds (default 0-19)"
     )
     parser.add_argument(
-        "--hard-seeds", type=_seed_range, default=list(range(60)), help="hard-family seeds (default 0-59)"
+        "--hard-seeds", type=seed_range, default=list(range(60)), help="hard-family seeds (default 0-59)"
     )
     parser.add_argument(
         "--pipeline-seeds",
-        type=_seed_range,
+        type=seed_range,
         help="run every set once per pipeline seed, e.g. 0-2, and report the means (default: the config's)",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (default 1)")

@@ -102,7 +102,8 @@ class WindowCounter:
 
 def soak(path: Path, out: Path, args: argparse.Namespace) -> tuple[list[dict], float]:
     """Segment ``path`` in a child process and sample it; returns the rows and the wall time."""
-    command = [sys.executable, "-m", "evseg_torch.cli", "segment", str(path), "--out", str(out), "--quiet"]
+    command = [sys.executable, "-m", "evseg_torch.app.cli", "segment", str(path)]
+    command += ["--out", str(out), "--quiet"]
     command += ["--sensor-size", f"{SENSOR[0]}x{SENSOR[1]}", "--window-ms", f"{args.window_ms:g}"]
     command += ["--workers", str(args.workers), "--batch-size", str(args.batch_size)]
     if args.config is not None:

@@ -87,7 +87,7 @@ CHILD = (
     "who = (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)\n"
     "peak = lambda: max(resource.getrusage(w).ru_maxrss for w in who)\n"
     "atexit.register(lambda: print('MAXRSS_KIB', peak(), file=sys.stderr))\n"
-    "from evseg_torch.cli import main\n"
+    "from evseg_torch.app.cli import main\n"
     "sys.exit(main(sys.argv[1:]))"
 )
 

@@ -1,6 +1,6 @@
 """Streams against cold windows: per-window quality of ``CascadedSegmenter.stream`` over continuous scenes.
 
-Each scene of the ``hard`` family (:mod:`evseg_torch.synthetic_families`) is generated 0.3 s long and
+Each scene of the ``hard`` family (:mod:`evseg_torch.synthetic.families`) is generated 0.3 s long and
 streamed in 30 ms windows (model reuse and guided tracking on, as in ``evseg segment``); every window is
 also segmented on its own, cold. Both are scored like the probe scenes (ambiguous and noise events left
 out; detection by percentile boxes) and the means over the windows with a moving object are printed,
@@ -17,13 +17,13 @@ import time
 import numpy as np
 from bench_quality import add_overrides
 
-from evseg_torch.cli import _seed_range
+from evseg_torch.app.cli.options import seed_range
+from evseg_torch.app.threads import set_threads
 from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.errors import ConfigError
 from evseg_torch.evaluation.labelled import score_labelling
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.synthetic_families import make_family_scene
-from evseg_torch.threads import set_threads
+from evseg_torch.synthetic.families import make_family_scene
 
 METRICS = ("accuracy", "iou", "detection")
 
@@ -60,10 +60,10 @@ def score_scene(scene, config, cold: bool) -> dict[str, list]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=_seed_range, default=list(range(8)), help="scene seeds (default 0-7)")
+    parser.add_argument("--seeds", type=seed_range, default=list(range(8)), help="scene seeds (default 0-7)")
     parser.add_argument("--duration-ms", type=float, default=300.0, help="scene length (default 300 ms)")
     parser.add_argument(
-        "--pipeline-seeds", type=_seed_range, default=[0], help="pipeline seeds, e.g. 0-2 (default 0)"
+        "--pipeline-seeds", type=seed_range, default=[0], help="pipeline seeds, e.g. 0-2 (default 0)"
     )
     add_overrides(parser, "flat config override, e.g. initial_models=replace")
     parser.add_argument("--no-cold", action="store_true", help="stream only (compare variants' streams)")

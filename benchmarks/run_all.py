@@ -19,7 +19,7 @@ def probe_scenes() -> int:
         print(f"skipped: no probe scenes in {PROBE}")
         return 0
     command = ["evaluate", "labelled", *map(str, scenes)]
-    return subprocess.run([sys.executable, "-m", "evseg_torch.cli", "--quiet", *command]).returncode
+    return subprocess.run([sys.executable, "-m", "evseg_torch.app.cli", "--quiet", *command]).returncode
 
 
 if __name__ == "__main__":

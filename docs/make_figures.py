@@ -3,7 +3,7 @@
 Every figure in README.md is an image line ``![...](docs/NAME.png)`` followed, within the next
 eight lines (its caption), by the line ``Made by `evseg ...` `` that names the command writing it.
 This script finds those pairs, runs each distinct command once from the repository root (``evseg``
-is this checkout's ``python -m evseg_torch.cli``) and checks that every figure was written anew, so
+is this checkout's ``python -m evseg_torch.app.cli``) and checks that every figure was written anew, so
 the README's figures and commands cannot drift apart. ``--only NAME ...`` regenerates the figures
 whose path contains NAME, e.g. ``--only demo`` (the EED figures take a minute).
 """
@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         started = time.time()
         print(f"$ {command}", flush=True)
         subprocess.run(
-            [sys.executable, "-m", "evseg_torch.cli", *shlex.split(command)[1:]], cwd=ROOT, check=True
+            [sys.executable, "-m", "evseg_torch.app.cli", *shlex.split(command)[1:]], cwd=ROOT, check=True
         )
         stale = [
             path

@@ -1,9 +1,10 @@
 """evseg_torch: event-camera motion segmentation by cascaded two-level multi-model fitting.
 
 ``CascadedSegmenter`` and ``Segmentation`` load torch on first use, so that NumPy-only parts (level
-one, io, metrics) import without it.
+one, io, the metrics) import without it.
 """
 
+from evseg_torch.app.results import SegmentationResults, load_results
 from evseg_torch.config import SegmenterConfig, load_config
 from evseg_torch.errors import (
     ConfigError,
@@ -16,7 +17,6 @@ from evseg_torch.errors import (
 )
 from evseg_torch.events import EVENT_DTYPE, EventBatch, as_events, batch_windows, to_torch
 from evseg_torch.io import load_events
-from evseg_torch.results import SegmentationResults, load_results
 
 __version__ = "0.1.0"
 

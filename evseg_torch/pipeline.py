@@ -8,10 +8,9 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Iterable, Iterator, Sequence
-from contextlib import ExitStack
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
-from numbers import Integral, Real
+from numbers import Real
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +32,7 @@ from evseg_torch.tracking import (
     shared_motion_groups,
     window_duration,
 )
-from evseg_torch.workers import WindowPool
+from evseg_torch.validation import check_integer
 
 _MAX_SPAN_US = np.iinfo(np.int64).max
 # Corner responses and Lucas-Kanade pyramids need a few pixels each way; smaller sensors skip level one.
@@ -199,8 +198,8 @@ class CascadedSegmenter(nn.Module):
         """Segment several windows, with one batched level two for all of them.
 
         Level one runs window by window (NumPy, CPU); level two labels and refits every window in one
-        batched call (:class:`~evseg_torch.level_two.descent.segmenter.GraphCutContrastSegmenter`). Each window's
-        result equals what :meth:`forward` gives for it alone.
+        batched call (:class:`~evseg_torch.level_two.descent.segmenter.GraphCutContrastSegmenter`). Each
+        window's result equals what :meth:`forward` gives for it alone.
 
         Args:
             windows: B windows, each in any form :meth:`forward` accepts for one window.
@@ -271,7 +270,7 @@ class CascadedSegmenter(nn.Module):
         stride_ms: float | None = None,
         events_per_window: int | None = None,
         batch_size: int = 1,
-        workers: int = 1,
+        segment_windows: Callable[[list, np.ndarray | None], list[Segmentation]] | None = None,
         first_window: int = 0,
         max_windows: int | None = None,
         initial_models: np.ndarray | None = None,
@@ -286,9 +285,12 @@ class CascadedSegmenter(nn.Module):
             batch_size: windows segmented together by :meth:`segment_batch`. With more than one, every
                 window of a batch starts from the models of the last window of the batch before (the
                 windows of a batch are segmented at once, so none can wait for its predecessor's).
-            workers: processes that share out the windows of each batch (:mod:`evseg_torch.workers`),
-                one torch thread each; at most ``batch_size``. The results equal those of one process
-                on one torch thread, window by window.
+            segment_windows: segments one batch: called with the batch's windows (a list of canonical
+                event arrays) and the models all of them start from (:math:`(M, P)`, or ``None``), it
+                returns one :class:`Segmentation` per window, in order. Default: this segmenter, in this
+                process (:meth:`segment_batch`). ``evseg_torch.app.workers.WindowPool(segmenter, n).segment``
+                shares a batch's windows out among ``n`` processes, one torch thread each, with the results
+                of one process on one torch thread, window by window.
             first_window: windows before this index are cut but not segmented: a stopped stream resumes
                 here, with ``initial_models`` the models of the last window it segmented (its batches then
                 line up with the uninterrupted stream's when it stopped after a whole batch).
@@ -301,63 +303,51 @@ class CascadedSegmenter(nn.Module):
         Yields:
             :class:`Segmentation` of each window with at least ``min_events`` events; its ``offset`` and
             ``window_index`` place it in the stream, and its ``object_ids`` follow objects from window to
-            window (assigned here, window after window, so neither batches nor workers change them).
+            window (assigned here, window after window, so neither batches nor ``segment_windows``
+            change them).
 
         Raises:
-            ConfigError: ``batch_size`` or ``workers`` is not a positive integer, or ``workers`` exceeds
-                ``batch_size``.
+            ConfigError: ``batch_size``, ``first_window``, ``max_windows`` or ``next_object_id`` is not an
+                integer in its range.
         """
-        for name, value, least in (
-            ("batch_size", batch_size, 1),
-            ("workers", workers, 1),
-            ("first_window", first_window, 0),
-            ("max_windows", 1 if max_windows is None else max_windows, 1),
-            ("next_object_id", next_object_id, 1),
-        ):
-            if isinstance(value, bool) or not isinstance(value, Integral) or value < least:
-                raise ConfigError(f"{name} must be an integer of at least {least}, got {value!r}")
-        if workers > batch_size:
-            raise ConfigError(
-                f"workers ({workers}) must not exceed batch_size ({batch_size}): the workers share out "
-                "the windows of one batch"
-            )
-        with ExitStack() as stack:
-            segment = self._segment
-            if workers > 1:
-                segment = stack.enter_context(WindowPool(self, workers)).segment
-            chunks = _as_chunks(events, self.sensor_size)
-            windows = self.config.window
-            if window_ms is None and events_per_window is None:
-                window_ms, events_per_window = windows.window_ms, windows.events_per_window
-                if events_per_window is not None:
-                    window_ms = None
-            stride_ms = stride_ms if stride_ms is not None else (windows.stride_ms if window_ms else None)
-            cut = iter_windows(
-                chunks, window_ms=window_ms, stride_ms=stride_ms, events_per_window=events_per_window
-            )
-            if max_windows is not None:
-                cut = itertools.takewhile(lambda window: window.index < max_windows, cut)
-            kept = (
-                window
-                for window in cut
-                if window.index >= first_window and len(window.events) >= windows.min_events
-            )
-            previous = None
-            if initial_models is not None and self.config.level_one.reuse_models:
-                models = np.asarray(_numpy(initial_models), dtype=np.float64)
-                if models.ndim != 2 or models.shape[1] != self.motion.n_params:
-                    raise ModelError(
-                        f"initial_models must be (M, {self.motion.n_params}), got {tuple(models.shape)}"
-                    )
-                previous = self._plausible(models)
-            tracker = ObjectTracker(self.motion, initial_objects, next_object_id)
-            for batch in _batched(kept, batch_size):
-                results = segment([window.events for window in batch], previous)
-                if self.config.level_one.reuse_models:
-                    previous = self._plausible(results[-1].models)
-                for window, result in zip(batch, results, strict=True):
-                    ids = tracker.update(result)
-                    yield replace(result, offset=window.offset, window_index=window.index, object_ids=ids)
+        check_integer(batch_size, "batch_size", at_least=1)
+        check_integer(first_window, "first_window")
+        check_integer(1 if max_windows is None else max_windows, "max_windows", at_least=1)
+        check_integer(next_object_id, "next_object_id", at_least=1)
+        segment = self._segment if segment_windows is None else segment_windows
+        chunks = _as_chunks(events, self.sensor_size)
+        windows = self.config.window
+        if window_ms is None and events_per_window is None:
+            window_ms, events_per_window = windows.window_ms, windows.events_per_window
+            if events_per_window is not None:
+                window_ms = None
+        stride_ms = stride_ms if stride_ms is not None else (windows.stride_ms if window_ms else None)
+        cut = iter_windows(
+            chunks, window_ms=window_ms, stride_ms=stride_ms, events_per_window=events_per_window
+        )
+        if max_windows is not None:
+            cut = itertools.takewhile(lambda window: window.index < max_windows, cut)
+        kept = (
+            window
+            for window in cut
+            if window.index >= first_window and len(window.events) >= windows.min_events
+        )
+        previous = None
+        if initial_models is not None and self.config.level_one.reuse_models:
+            models = np.asarray(_numpy(initial_models), dtype=np.float64)
+            if models.ndim != 2 or models.shape[1] != self.motion.n_params:
+                raise ModelError(
+                    f"initial_models must be (M, {self.motion.n_params}), got {tuple(models.shape)}"
+                )
+            previous = self._plausible(models)
+        tracker = ObjectTracker(self.motion, initial_objects, next_object_id)
+        for batch in _batched(kept, batch_size):
+            results = segment([window.events for window in batch], previous)
+            if self.config.level_one.reuse_models:
+                previous = self._plausible(results[-1].models)
+            for window, result in zip(batch, results, strict=True):
+                ids = tracker.update(result)
+                yield replace(result, offset=window.offset, window_index=window.index, object_ids=ids)
 
     def _plausible(self, models: np.ndarray) -> np.ndarray:
         """The models worth reusing: a refit that diverged (no motion of this sensor) would only derail
@@ -496,14 +486,9 @@ def _event_rows(events):
 
 
 def _batched(items: Iterable, size: int) -> Iterator[list]:
-    """Consecutive lists of ``size`` items (the last may be shorter)."""
-    batch = []
-    for item in items:
-        batch.append(item)
-        if len(batch) == size:
-            yield batch
-            batch = []
-    if batch:
+    """Consecutive lists of ``size`` items (the last may be shorter), read one list at a time."""
+    items = iter(items)
+    while batch := list(itertools.islice(items, size)):
         yield batch
 
 

@@ -13,7 +13,7 @@ from evseg_torch.events import EVENT_DTYPE
 from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size, save_evimo
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic import make_scene
-from tests.io._writers import (
+from tests.helpers.io import (
     aedat2_bytes,
     make_events,
     write_h5_dsec,

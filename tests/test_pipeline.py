@@ -7,10 +7,10 @@ import torch
 from evseg_torch import CascadedSegmenter, EventFormatError, Segmentation
 from evseg_torch.config import SegmenterConfig, bundled_config
 from evseg_torch.errors import ConfigError, ModelError
+from evseg_torch.evaluation.metrics import labelling_accuracy
 from evseg_torch.events import EventBatch, batch_windows, to_array, to_torch
 from evseg_torch.level_one.progressive_x import progressive_x
 from evseg_torch.level_two.discovery import Discovery
-from evseg_torch.metrics import labelling_accuracy
 from evseg_torch.motion import make_motion_model
 from evseg_torch.synthetic import make_scene
 
@@ -327,18 +327,19 @@ def test_stream_in_batches_places_every_window(one_thread):
         next(segmenter.stream(scene.events, batch_size=0))
 
 
-def test_stream_workers_give_the_results_of_one_process(one_thread):
-    """Two processes share out each batch's windows; every window's result is the one-process result."""
-    scene = make_scene((90, 120), 0.15, n_objects=2, n_events=6000, rng=5)
+def test_stream_segments_each_batch_with_the_given_callable(one_thread):
+    scene = make_scene((90, 120), 0.09, n_objects=1, n_events=4000, rng=5)
     segmenter = CascadedSegmenter((90, 120))
-    one = list(segmenter.stream(scene.events, window_ms=30, batch_size=3))
-    shared = list(segmenter.stream(scene.events, window_ms=30, batch_size=3, workers=2))
-    assert len(one) == len(shared) == 5
-    for a, b in zip(one, shared, strict=True):
+    calls = []
+
+    def segment_windows(windows, initial_models):
+        calls.append((len(windows), initial_models is None))
+        return segmenter.segment_batch(windows, None, [initial_models] * len(windows))
+
+    given = list(segmenter.stream(scene.events, window_ms=30, batch_size=2, segment_windows=segment_windows))
+    plain = list(segmenter.stream(scene.events, window_ms=30, batch_size=2))
+    assert calls == [(2, True), (1, False)]
+    for a, b in zip(plain, given, strict=True):
         assert (a.offset, a.window_index) == (b.offset, b.window_index)
         np.testing.assert_array_equal(a.labels, b.labels)
-        np.testing.assert_array_equal(a.models, b.models)
-    with pytest.raises(ConfigError, match="workers"):
-        next(segmenter.stream(scene.events, batch_size=2, workers=3))
-    with pytest.raises(ConfigError, match="workers"):
-        next(segmenter.stream(scene.events, workers=0))
+        np.testing.assert_array_equal(a.object_ids, b.object_ids)

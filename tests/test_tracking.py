@@ -9,14 +9,18 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from evseg_torch.app.jobs import Job, with_window
+from evseg_torch.app.runs import segment_file
+from evseg_torch.app.signals import Stopped
+from evseg_torch.app.threads import set_threads
+from evseg_torch.app.workers import WindowPool
 from evseg_torch.config import SegmenterConfig
+from evseg_torch.evaluation.metrics import match_clusters, per_object_iou
 from evseg_torch.events import EVENT_DTYPE
-from evseg_torch.metrics import match_clusters, per_object_iou
 from evseg_torch.motion import make_motion_model
 from evseg_torch.pipeline import CascadedSegmenter
-from evseg_torch.runs import Job, Stopped, segment_file, with_window
 from evseg_torch.synthetic import make_scene
-from evseg_torch.synthetic_families import make_family_scene
+from evseg_torch.synthetic.families import make_family_scene
 from evseg_torch.tracking import (
     ObjectTracker,
     TrackedClusters,
@@ -204,10 +208,13 @@ def test_single_windows_are_numbered_as_a_streams_first(one_thread):
 
 
 def test_workers_and_batches_do_not_change_ids(one_thread):
+    set_threads(1)  # workers forked while OpenCV runs its own thread pool would hang in it
     scene = make_scene(SIZE, 0.15, n_objects=2, n_events=6000, rng=5)
     segmenter = CascadedSegmenter(SIZE)
     one = list(segmenter.stream(scene.events, window_ms=30, batch_size=3))
-    shared = list(segmenter.stream(scene.events, window_ms=30, batch_size=3, workers=2))
+    with WindowPool(segmenter, 2, batch_size=3) as pool:
+        stream = segmenter.stream(scene.events, window_ms=30, batch_size=3, segment_windows=pool.segment)
+        shared = list(stream)
     for a, b in zip(one, shared, strict=True):
         np.testing.assert_array_equal(a.object_ids, b.object_ids)
     # The ids are the tracker's over the windows in order, not restarted with each batch.
@@ -235,7 +242,7 @@ def test_a_resumed_run_writes_the_ids_of_an_uninterrupted_one(tmp_path, monkeypa
         if len(calls) == 5:
             raise Stopped(signal.SIGTERM)
 
-    monkeypatch.setattr("evseg_torch.runs._raise_if_stopped", stop_after_five)
+    monkeypatch.setattr("evseg_torch.app.runs.raise_if_stopped", stop_after_five)
     with pytest.raises(Stopped):
         segment_file(stopped)
     monkeypatch.undo()

@@ -57,6 +57,7 @@ from evseg_torch.events import EVENT_DTYPE, CountWindowIndex, TimeWindowIndex, t
 from evseg_torch.io import iter_event_chunks, resolve_sensor_size
 from evseg_torch.io.guard import existing_file, reading
 from evseg_torch.io.numpy_files import WHAT_NPY, WHAT_NPZ, open_npz
+from evseg_torch.validation import check_integer
 
 __all__ = ["EventWindowDataset"]
 
@@ -398,8 +399,8 @@ def _geometry(window_ms, stride_ms, events_per_window, stride_events) -> tuple:
         return window_us, stride_us, None, None
     if stride_ms is not None:
         raise ConfigError("stride_ms applies to window_ms; windows of an event count step by stride_events")
-    count = _positive_count(events_per_window, "events_per_window")
-    stride = count if stride_events is None else _positive_count(stride_events, "stride_events")
+    count = check_integer(events_per_window, "events_per_window", at_least=1)
+    stride = count if stride_events is None else check_integer(stride_events, "stride_events", at_least=1)
     return None, None, count, stride
 
 
@@ -412,12 +413,6 @@ def _microseconds(milliseconds, name: str) -> int:
     if value <= 0:
         raise ConfigError(f"{name} must be positive (at least 1 us), got {milliseconds!r}")
     return value
-
-
-def _positive_count(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value <= 0:
-        raise ConfigError(f"{name} must be a positive whole number of events, got {value!r}")
-    return int(value)
 
 
 def _remove_cache(directory: Path, owner_pid: int) -> None:

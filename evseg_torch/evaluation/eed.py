@@ -7,11 +7,9 @@ For each ground-truth box at time ``t_b``:
    ``t_ref = t_b`` (``reference="box"``, the default), or the window's first event
    (``reference="window_start"``): the convention of EMSGC's output and of the IROS paper's figures,
    which puts the compensated clusters half a window before ``t_b``. On EED's ``occlusions`` the GT
-   boxes themselves lag the events: the density of events inside the boxes, relative to the image's,
-   peaks 15 ms before the box stamps (10.3 times the image's at -15 ms, 6.8 at 0 ms; medians over the
-   13 boxes of 5 ms slices), where the window-start convention compensates to. A window with fewer
-   than ``min_events`` events is *not evaluable* and reported separately (it counts in neither
-   numerator nor denominator).
+   boxes themselves lag the events: the density of events inside the boxes peaks before the box stamps,
+   about where the window-start convention compensates to. A window with fewer than ``min_events``
+   events is *not evaluable* and reported separately (it counts in neither numerator nor denominator).
 2. **Background rule**: the cluster holding the most events is the background (the ego-motion of a
    moving camera explains most events; EMSGC numbers clusters by size for the same reason).
 3. Each other cluster's events are warped by its own model to ``t_ref``; the cluster's box is the
@@ -23,7 +21,7 @@ For each ground-truth box at time ``t_b``:
    area; over the predicted box's area (under which a compensated object inside a larger GT box,
    drawn around a motion-blurred APS image, counts as detected); and the *nested* reading, the
    intersection over the smaller box's area with the two areas within 4x of each other
-   (:func:`~evseg_torch.metrics.boxes_nested`: the object inside a blurred GT box counts, a cluster box
+   (:func:`~.metrics.boxes_nested`: the object inside a blurred GT box counts, a cluster box
    spanning half the image around a small GT box does not).
 
 Detection rate = detected / evaluable boxes.
@@ -39,9 +37,9 @@ import numpy as np
 
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.errors import ConfigError, ReaderError
-from evseg_torch.event_images import event_counts
+from evseg_torch.evaluation.metrics import box_intersection, box_iou, box_of_points, boxes_nested
+from evseg_torch.events.images import event_counts
 from evseg_torch.io import load_eed_boxes, load_events
-from evseg_torch.metrics import box_intersection, box_iou, box_of_points, boxes_nested
 from evseg_torch.pipeline import CascadedSegmenter
 
 EED_SENSOR_SIZE = (180, 240)  # DAVIS240; the boxes are drawn on its 240x180 APS frames
@@ -106,7 +104,7 @@ class BoxResult:
 
     @property
     def detected_nested(self) -> bool:
-        """The nested reading: the matched and the GT box nest (:func:`~evseg_torch.metrics.boxes_nested`)."""
+        """The nested reading: the matched and the GT box nest (:func:`~.metrics.boxes_nested`)."""
         return self.evaluable and bool(boxes_nested(self.predicted_box, self.gt_box))
 
 

@@ -41,8 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from evseg_torch.errors import ShapeError
-from evseg_torch.event_images import event_counts
-from evseg_torch.metrics import (
+from evseg_torch.evaluation.metrics import (
     convex_hull_mask,
     event_iou,
     event_pixel_iou,
@@ -50,6 +49,7 @@ from evseg_torch.metrics import (
     mean_iou,
     success_rate,
 )
+from evseg_torch.events.images import event_counts
 
 CONVEX_HULL_IOU = (
     "convex-hull mask IoU (IROS 2021 / EMSGC): union of the convex hulls of the IMO clusters' "

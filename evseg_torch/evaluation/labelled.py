@@ -12,9 +12,9 @@ whatever label they get. Per window:
   percentile of x and y) with IoU > 0.5 against the box of the object's own events (same percentiles);
 * ``count_error``: predicted clusters minus true layers (background included);
 * ``outcomes``: per moving object, ``"detected"`` or why it was missed
-  (:func:`~evseg_torch.metrics.object_outcomes`: held by the background, merged with another object, split
+  (:func:`~.metrics.object_outcomes`: held by the background, merged with another object, split
   over clusters, or its own cluster's box stretched);
-* the dynamic-class metrics of learned maskers (:mod:`evseg_torch.metrics`), on the scored events:
+* the dynamic-class metrics of learned maskers (:mod:`.metrics`), on the scored events:
   events are *dynamic* in truth when their layer is > 0, and predicted dynamic when off the background
   (the cascade: any cluster but the largest, the background rule of :mod:`.evimo`; another method's
   predictions: a label > 0, as in EV-IMO masks and binary dynamic masks). ``dynamic_iou`` is the event
@@ -39,11 +39,7 @@ import numpy as np
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.errors import EventFormatError, ReaderError, ShapeError
 from evseg_torch.evaluation.evimo import background_cluster
-from evseg_torch.events import check_sensor_size
-from evseg_torch.io import load_events, read_sensor_size
-from evseg_torch.io.guard import existing_file, reading
-from evseg_torch.io.numpy_files import WHAT_NPZ, open_npz
-from evseg_torch.metrics import (
+from evseg_torch.evaluation.metrics import (
     box_iou,
     labelling_accuracy,
     mask_iou,
@@ -53,6 +49,10 @@ from evseg_torch.metrics import (
     per_object_iou,
     success_rate,
 )
+from evseg_torch.events import check_sensor_size
+from evseg_torch.io import load_events, read_sensor_size
+from evseg_torch.io.guard import existing_file, reading
+from evseg_torch.io.numpy_files import WHAT_NPZ, open_npz
 from evseg_torch.pipeline import CascadedSegmenter
 
 __all__ = [

@@ -4,7 +4,7 @@ Two families of scenes:
 
 * the default (``family=None``): seed ``s`` has ``1 + s % 3`` objects of
   :func:`~evseg_torch.synthetic.make_scene`;
-* ``"hard"``: :func:`~evseg_torch.synthetic_families.make_family_scene`, the failure modes we know of
+* ``"hard"``: :func:`~evseg_torch.synthetic.families.make_family_scene`, the failure modes we know of
   (similar motions, rotating and scaling objects, small fast objects in sparse windows, weak textures),
   scored as the labelled probe scenes are, by :func:`~evseg_torch.evaluation.labelled.score_labelling`.
 
@@ -18,7 +18,7 @@ families. Reported per scene:
   or whose matched cluster's 2nd-98th percentile box has IoU > 0.5 with the object's (``hard``);
 * ``count_error``: clusters found minus true layers (background included);
 * ``outcomes``: per object, ``"detected"`` or why it was missed
-  (:func:`~evseg_torch.metrics.object_outcomes`); :func:`summarize` counts the misses of each kind;
+  (:func:`~.metrics.object_outcomes`); :func:`summarize` counts the misses of each kind;
 * ``time_ms``: wall time of the segmentation of the window.
 """
 
@@ -29,13 +29,13 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from evseg_torch.evaluation.evimo import background_cluster
-from evseg_torch.metrics import OUTCOMES, labelling_accuracy, object_outcomes, per_object_iou
+from evseg_torch.evaluation.metrics import OUTCOMES, labelling_accuracy, object_outcomes, per_object_iou
 
 
 @dataclass(frozen=True)
 class SceneScore:
     """Scores of one scene; ``kinds`` names its failure modes (``similar+spinning``) in a family;
-    ``outcomes`` is each object's outcome (:func:`~evseg_torch.metrics.object_outcomes`)."""
+    ``outcomes`` is each object's outcome (:func:`~.metrics.object_outcomes`)."""
 
     seed: int
     n_objects: int
@@ -66,7 +66,7 @@ def evaluate_synthetic(
             :class:`~evseg_torch.pipeline.CascadedSegmenter` built for ``sensor_size``).
         seeds: scene seeds.
         family: ``None`` for the default scenes, or a name of
-            :data:`~evseg_torch.synthetic_families.FAMILIES`.
+            :data:`~evseg_torch.synthetic.families.FAMILIES`.
         sensor_size: ``(H, W)``.
         duration: seconds per scene.
         true_models: give the segmenter each scene's true motions as ``initial_models`` (with
@@ -93,7 +93,7 @@ def summarize(scores) -> dict[str, float]:
     """Means over scenes (``abs_count_error`` is the mean absolute cluster-count error), the 10th
     percentiles ``accuracy_p10``, ``iou_p10`` and ``detection_p10`` over scenes (the worst tenth), and
     ``missed_<outcome>``: how many objects were missed for each reason of
-    :func:`~evseg_torch.metrics.object_outcomes`, over all scenes."""
+    :func:`~.metrics.object_outcomes`, over all scenes."""
     table = [asdict(s) for s in scores]
     summary = {"scenes": len(table)}
     for key in ("accuracy", "iou", "detection"):
@@ -142,7 +142,7 @@ def _score_default(segmenter, seed: int, sensor_size, duration, true_models: boo
 
 def _score_family(segmenter, family: str, seed: int, sensor_size, duration, true_models: bool) -> SceneScore:
     from evseg_torch.evaluation.labelled import score_labelling
-    from evseg_torch.synthetic_families import family_kinds, make_family_scene
+    from evseg_torch.synthetic.families import family_kinds, make_family_scene
 
     scene = make_family_scene(family, seed, sensor_size=sensor_size, duration=duration)
     result = _segment(segmenter, scene, true_models)

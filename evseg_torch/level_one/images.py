@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 
 from evseg_torch.errors import ConfigError, EventFormatError, ShapeError
-from evseg_torch.event_images import event_counts
 from evseg_torch.events import check_sensor_size
+from evseg_torch.events.images import event_counts
 
 __all__ = ["check_image", "event_image", "to_uint8"]
 
@@ -21,7 +21,7 @@ __all__ = ["check_image", "event_image", "to_uint8"]
 def event_image(xy, sensor_size: tuple[int, int]) -> np.ndarray:
     """Count events per pixel, without motion compensation.
 
-    The counts are :func:`~evseg_torch.event_images.event_counts`'s, except that positions outside the
+    The counts are :func:`~evseg_torch.events.images.event_counts`'s, except that positions outside the
     sensor are refused here rather than dropped: level one's images must hold every event of the window.
 
     Args:

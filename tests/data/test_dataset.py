@@ -10,7 +10,7 @@ from evseg_torch.errors import ConfigError, EventFormatError, ReaderError
 from evseg_torch.evaluation.labelled import load_labelled
 from evseg_torch.events import EVENT_DTYPE, EventBatch, iter_windows
 from evseg_torch.io import load_events, save_evimo
-from tests.io._writers import HEIGHT, WIDTH, WRITERS, make_events
+from tests.helpers.io import HEIGHT, WIDTH, WRITERS, make_events
 
 PROBE = "scene_200.npz"
 
@@ -266,9 +266,9 @@ class TestErrors:
             ({"window_ms": -5}, "window_ms must be positive"),
             ({"window_ms": "long"}, "window_ms must be a positive number"),
             ({"window_ms": 30, "stride_ms": 0}, "stride_ms must be positive"),
-            ({"events_per_window": 0}, "events_per_window must be a positive whole number"),
-            ({"events_per_window": 2.5}, "events_per_window must be a positive whole number"),
-            ({"events_per_window": 10, "stride_events": -1}, "stride_events must be a positive whole number"),
+            ({"events_per_window": 0}, "events_per_window must be an integer of at least 1"),
+            ({"events_per_window": 2.5}, "events_per_window must be an integer of at least 1"),
+            ({"events_per_window": 10, "stride_events": -1}, "stride_events must be an integer"),
             ({"window_ms": 30, "stride_events": 10}, "stride_events applies to events_per_window"),
             ({"events_per_window": 10, "stride_ms": 10}, "stride_ms applies to window_ms"),
         ],

@@ -7,7 +7,7 @@ import pytest
 from evseg_torch.errors import ConfigError
 from evseg_torch.evaluation.synthetic import SceneScore, evaluate_synthetic, summarize
 from evseg_torch.synthetic import make_scene
-from evseg_torch.synthetic_families import family_kinds, make_family_scene
+from evseg_torch.synthetic.families import family_kinds, make_family_scene
 
 SIZE, DURATION = (48, 64), 0.01
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from tests.io._writers import WRITERS, make_events
+from tests.helpers.io import WRITERS, make_events
 
 
 @pytest.fixture

@@ -3,7 +3,7 @@ import pytest
 
 from evseg_torch.errors import ReaderError
 from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size
-from tests.io._writers import aedat2_bytes, make_events
+from tests.helpers.io import aedat2_bytes, make_events
 
 
 @pytest.fixture

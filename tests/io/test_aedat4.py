@@ -8,7 +8,7 @@ import pytest
 
 from evseg_torch.errors import ReaderError
 from evseg_torch.io import aedat4, iter_event_chunks, load_events, read_sensor_size
-from tests.io._writers import make_events
+from tests.helpers.io import make_events
 
 AEDAT_DTYPE = np.dtype([("t", "<u8"), ("x", "<u2"), ("y", "<u2"), (("p", "on"), "?")])
 

@@ -13,7 +13,7 @@ from evseg_torch.io import (
     read_sensor_size,
     read_time_span,
 )
-from tests.io._writers import HEIGHT, WIDTH, make_events, write_npz_columns, write_txt
+from tests.helpers.io import HEIGHT, WIDTH, make_events, write_npz_columns, write_txt
 
 
 class TestRoundTrip:

@@ -10,7 +10,7 @@ from evseg_torch.io import (
     read_sensor_size,
     save_evimo,
 )
-from tests.io._writers import HEIGHT, WIDTH, make_events
+from tests.helpers.io import HEIGHT, WIDTH, make_events
 
 
 @pytest.fixture

@@ -16,7 +16,7 @@ from evseg_torch.io import (
     read_time_span,
     reader_for,
 )
-from tests.io._writers import HEIGHT, WIDTH, make_events
+from tests.helpers.io import HEIGHT, WIDTH, make_events
 
 FRAME_IDS = [3, 4, 5]
 
@@ -125,7 +125,7 @@ def test_not_a_sequence(tmp_path):
 
 
 def test_evseg_segment_takes_the_folder(tmp_path, events, masks):
-    from evseg_torch.cli import main
+    from evseg_torch.app.cli import main
 
     folder = write_evimo2(tmp_path / "seq", events, masks, _times(events))
     assert main(["--quiet", "segment", str(folder), "--out", str(tmp_path / "out"), "--window-ms", "50"]) == 0

@@ -4,7 +4,7 @@ import pytest
 
 from evseg_torch.errors import ReaderError
 from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size
-from tests.io._writers import T0_US, make_events, write_h5_dsec, write_h5_event_utils
+from tests.helpers.io import T0_US, make_events, write_h5_dsec, write_h5_event_utils
 
 
 class TestHdf5Reader:

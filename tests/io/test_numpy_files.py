@@ -3,7 +3,7 @@ import pytest
 
 from evseg_torch.errors import ReaderError
 from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size
-from tests.io._writers import as_seconds_array, write_npz_columns
+from tests.helpers.io import as_seconds_array, write_npz_columns
 
 
 class TestNpy:

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from expelliarmus import Wizard
 
-from evseg_torch.cli import main
+from evseg_torch.app.cli import main
 from evseg_torch.errors import ReaderError
 from evseg_torch.events import as_events
 from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size, reader_for
-from tests.io._writers import make_events
+from tests.helpers.io import make_events
 
 SAMPLES = "prophesee_gen4_driving_expelliarmus"
 

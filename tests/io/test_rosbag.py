@@ -9,10 +9,10 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from evseg_torch.cli import main
+from evseg_torch.app.cli import main
 from evseg_torch.errors import ConfigError, ReaderError
 from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size, reader_for
-from tests.io._writers import HEIGHT, WIDTH, make_events, write_txt
+from tests.helpers.io import HEIGHT, WIDTH, make_events, write_txt
 
 DVS = "dvs_msgs/msg/EventArray"
 PROPHESEE = "prophesee_event_msgs/msg/EventArray"

@@ -6,7 +6,7 @@ import pytest
 
 from evseg_torch.errors import EventFormatError, ReaderError
 from evseg_torch.io import iter_event_chunks, load_events, read_sensor_size, read_time_span, reader_for
-from tests.io._writers import HEIGHT, WIDTH, make_events, write_txt
+from tests.helpers.io import HEIGHT, WIDTH, make_events, write_txt
 
 
 def write_sequence(folder, events, frame_shape=(HEIGHT, WIDTH)):

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from evseg_torch.errors import ConfigError, EventFormatError, ModelError, ShapeError
+from evseg_torch.evaluation.metrics import labelling_accuracy, per_object_iou
 from evseg_torch.events import EventBatch, batch_windows, to_torch
 from evseg_torch.graphcut.alpha_expansion import labeling_energy
 from evseg_torch.level_two.descent import segmenter as segmenter_module
@@ -12,7 +13,6 @@ from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter, L
 from evseg_torch.level_two.discovery import Discovery
 from evseg_torch.level_two.energy.graph import event_graph, site_graph
 from evseg_torch.level_two.energy.label_cost import label_cost
-from evseg_torch.metrics import labelling_accuracy, per_object_iou
 from evseg_torch.motion import Translation
 from evseg_torch.synthetic import make_scene
 
