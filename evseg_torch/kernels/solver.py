@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from evseg_torch.kernels.common import maximum
-from evseg_torch.level_two.solver.optimizers import optimizers as solver
+from evseg_torch.level_two.solver import optimizers as solver
 
 _OPTIONS = {"cache": True, "error_model": "numpy"}  # IEEE results of x / 0, as NumPy's
 
