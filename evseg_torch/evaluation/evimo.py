@@ -2,12 +2,12 @@
 
 For each mask of the sequence, at time ``t`` (seconds, the events' time base):
 
-1. Segment the window of ``window_ms`` **centred** on ``t`` (as in :mod:`.eed`: the masks are rendered
-   at ``t``, so the window's events straddle it), with the reference time ``t_ref = t``. A window with
-   fewer than ``min_events`` events, and a mask with no object pixel, are *not evaluated*: they are
-   reported with their reason and left out of every mean.
-2. **Background rule** (as in :mod:`.eed`): the cluster holding the most events is the background; the
-   other clusters are the independently moving objects (IMOs).
+1. Segment the window of ``window_ms`` **centred** on ``t`` (as in :mod:`~evseg_torch.evaluation.eed`: the
+   masks are rendered at ``t``, so the window's events straddle it), with the reference time ``t_ref = t``. A
+   window with fewer than ``min_events`` events, and a mask with no object pixel, are *not evaluated*: they
+   are reported with their reason and left out of every mean.
+2. **Background rule** (as in :mod:`~evseg_torch.evaluation.eed`): the cluster holding the most events is the
+   background; the other clusters are the independently moving objects (IMOs).
 3. **Convex-hull mask IoU** (EMSGC, TNNLS Eq. 11, and the IROS 2021 paper): each IMO cluster's events
    are warped by its own model to ``t`` (``Segmentation.warped_xy``); the pixels of its compensated count
    image (σ = 0, warped positions rounded) holding more than ``min_count`` events are kept (EMSGC's

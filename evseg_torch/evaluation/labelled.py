@@ -16,12 +16,12 @@ whatever label they get. Per window:
   over clusters, or its own cluster's box stretched);
 * the dynamic-class metrics of learned maskers (:mod:`.metrics`), on the scored events:
   events are *dynamic* in truth when their layer is > 0, and predicted dynamic when off the background
-  (the cascade: any cluster but the largest, the background rule of :mod:`.evimo`; another method's
-  predictions: a label > 0, as in EV-IMO masks and binary dynamic masks). ``dynamic_iou`` is the event
-  IoU of the dynamic class, ``miou`` the mean of the dynamic and background event IoUs, ``piou`` the IoU
-  of the pixels holding predicted-dynamic events and those holding truly dynamic events (per-event ground
-  truth has no dense mask, so only pixels with events count, as in pIoU); :func:`summarize_dynamic`
-  adds ``sr_at_0_5``, the fraction of files whose ``dynamic_iou`` is at least 0.5.
+  (the cascade: any cluster but the largest, the background rule of :mod:`~evseg_torch.evaluation.evimo`;
+  another method's predictions: a label > 0, as in EV-IMO masks and binary dynamic masks). ``dynamic_iou`` is
+  the event IoU of the dynamic class, ``miou`` the mean of the dynamic and background event IoUs, ``piou`` the
+  IoU of the pixels holding predicted-dynamic events and those holding truly dynamic events (per-event ground
+  truth has no dense mask, so only pixels with events count, as in pIoU); :func:`summarize_dynamic` adds
+  ``sr_at_0_5``, the fraction of files whose ``dynamic_iou`` is at least 0.5.
 
 :func:`evaluate_labelled` segments each file as one window with
 :class:`~evseg_torch.pipeline.CascadedSegmenter` and scores it (``evseg evaluate labelled``);

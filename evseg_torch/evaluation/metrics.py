@@ -5,7 +5,7 @@ Definitions (reference §3):
 * **Event-labelling accuracy**: the fraction of ground-truth events (noise excluded) whose predicted
   cluster is matched to their ground-truth layer, under the best one-to-one matching of clusters to
   layers (Hungarian algorithm on the overlap counts).
-* **Per-object event IoU**: for each ground-truth object, |E_gt ∩ E_pred| / |E_gt ∪ E_pred| between its
+* **Per-object event IoU**: for each ground-truth object, ``|E_gt ∩ E_pred| / |E_gt ∪ E_pred|`` between its
   events and the events of the cluster matched to it (0 when no cluster is matched). This is the
   event-wise IoU that MOMS, 0-MMS and SpikeMS report.
 * **Convex-hull mask IoU**: EMSGC's / the IROS paper's EV-IMO definition: a cluster's dense mask is the

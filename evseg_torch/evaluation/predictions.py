@@ -10,8 +10,8 @@ on the same labelled files, with the same ignore mask and metrics (``evseg evalu
   layer ids :math:`(T, H, W)` at the FILE's sensor size, and their times, strictly increasing, either
   ``mask_times`` in seconds (EV-IMO's unit) or ``mask_times_us`` in microseconds, in the events' time
   base (the FILE's ``t_us``). Each event takes the id of its pixel in the mask **nearest in time**, the
-  EV-IMO protocol's pairing of a mask with the events around it (:mod:`.evimo` segments the window
-  centred on each mask time); midway between two masks it takes the earlier one.
+  EV-IMO protocol's pairing of a mask with the events around it (:mod:`~evseg_torch.evaluation.evimo` segments
+  the window centred on each mask time); midway between two masks it takes the earlier one.
 
 A negative label or mask id means "no cluster" (an outlier), as in
 :func:`~evseg_torch.evaluation.labelled.score_labelling`: such an event is wrong for the accuracy,

@@ -1,23 +1,20 @@
 """Load event recordings of any supported format, chosen by the file's suffix or the folder's contents.
 
-=====================  ===================================================  ==============================
-input                  format                                               sensor size stored
-=====================  ===================================================  ==============================
-``.txt``               text ``t x y p`` (rpg / ECD / EED), see :mod:`.text`  no
-``.npy``               (N, 4) seconds or structured µs, see                 no
-                       :mod:`.numpy_files`
-``.npz``               pydvs / EV-IMO, EED/ECD columns, CeleX               width/height, EV-IMO mask
-``.h5 .hdf5``          event_utils or DSEC, see :mod:`.hdf5`                event_utils sensor_resolution
-``.aedat4``            iniVation AEDAT 4, see :mod:`.aedat4`                yes
-``.aedat``             jAER AEDAT 2.0 from a DVS128, see :mod:`.aedat2`     yes (128 x 128)
-``.bag``               ROS 1 bag of event arrays, see :mod:`.rosbag`        message height/width
-``.raw .dat``          Prophesee EVT 2.0/3.0 RAW or DAT, see                header geometry or camera
-                       :mod:`.prophesee_raw`
-ROS 2 bag folder       folder with ``metadata.yaml``, see :mod:`.rosbag`    message height/width
-EVIMO2v2 folder        ``dataset_events_*.npy`` ..., see :mod:`.evimo2`     mask image size
-rpg / ECD / EED folder ``events.txt`` (+ ``images.txt``), see               the first frame's size
-                       :mod:`.rpg_folder`
-=====================  ===================================================  ==============================
+==================  ===========================================================  =============================
+input               format                                                       sensor size stored
+==================  ===========================================================  =============================
+``.txt``            text ``t x y p`` (rpg / ECD / EED), see :mod:`.text`         no
+``.npy``            (N, 4) seconds or structured µs, see :mod:`.numpy_files`     no
+``.npz``            pydvs / EV-IMO, EED/ECD columns, CeleX                       width/height, EV-IMO mask
+``.h5 .hdf5``       event_utils or DSEC, see :mod:`.hdf5`                        event_utils sensor_resolution
+``.aedat4``         iniVation AEDAT 4, see :mod:`.aedat4`                        yes
+``.aedat``          jAER AEDAT 2.0 from a DVS128, see :mod:`.aedat2`             yes (128 x 128)
+``.bag``            ROS 1 bag of event arrays, see :mod:`.rosbag`                message height/width
+``.raw .dat``       Prophesee EVT 2.0/3.0 RAW or DAT, see :mod:`.prophesee_raw`  header geometry or camera
+ROS 2 bag folder    folder with ``metadata.yaml``, see :mod:`.rosbag`            message height/width
+EVIMO2v2 folder     ``dataset_events_*.npy`` ..., see :mod:`.evimo2`             mask image size
+rpg/ECD/EED folder  ``events.txt`` (+ ``images.txt``), see :mod:`.rpg_folder`    the first frame's size
+==================  ===========================================================  =============================
 
 Events come back in the canonical form of :func:`evseg_torch.events.as_events`. When the caller
 gives no ``sensor_size``, events are checked against the size the file stores, so that

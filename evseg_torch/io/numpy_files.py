@@ -6,15 +6,16 @@ Prophesee sample decoded by expelliarmus). It is memory-mapped, so chunks stream
 
 ``.npz``, one of these layouts:
 
-===================  ======================================================  ===================
-layout               keys                                                    time
-===================  ======================================================  ===================
-pydvs / EV-IMO       ``events`` :math:`(N, 4)` ``[t, x, y, p]`` (+ K, D,     seconds
-                     index, discretization, and for EV-IMO mask, meta, ...)
-columns (EED, ECD)   ``t_us``, ``x``, ``y``, ``p`` (+ ``width``, ``height``)  microseconds
-CeleX (EV-MotionSeg) ``t_raw``, ``x``, ``y``, no polarity (+ width, height)  microseconds
-single array         one array :math:`(N, 4)` under any name                 seconds
-===================  ======================================================  ===================
+====================  ===============================================================  ============
+layout                keys                                                             time
+====================  ===============================================================  ============
+pydvs / EV-IMO        ``events`` :math:`(N, 4)` ``[t, x, y, p]`` (+ K, D, index, ...)  seconds
+columns (EED, ECD)    ``t_us``, ``x``, ``y``, ``p`` (+ ``width``, ``height``)          microseconds
+CeleX (EV-MotionSeg)  ``t_raw``, ``x``, ``y``, no polarity (+ width, height)           microseconds
+single array          one array :math:`(N, 4)` under any name                          seconds
+====================  ===============================================================  ============
+
+EV-IMO's files also hold ``discretization``, ``mask`` and ``meta`` (read by :mod:`~evseg_torch.io.evimo`).
 
 The CeleX recording's README leaves the unit of ``t_raw`` undocumented but consistent with
 microseconds (93 packets of ~30 ms span 3.0 s); it is read as microseconds, and as the sensor

@@ -20,7 +20,7 @@ class Rotation3D(MotionModel):
     ``da/dt = a b w_x - (1 + a^2) w_y + b w_z`` and ``db/dt = (1 + b^2) w_x - a b w_y - a w_z``,
     times ``fx`` and ``fy`` for pixels. It is linear in omega, so 2 correspondences (4 equations)
     determine it. Events are warped with this first-order field, which differs from the exact
-    rotation by O((|omega| dt)^2): under 1e-3 px for the rates and windows of the paper.
+    rotation by ``O((|omega| dt)^2)``: under 1e-3 px for the rates and windows of the paper.
 
     EMSGC instead moves homogeneous *pixel* coordinates by ``dt (omega x [x, y, 1])`` with the
     origin at the top-left; that is this model with ``fx = fy = 1``, ``c = (0, 0)`` and omega negated.

@@ -1,3 +1,2 @@
-"""Level two's descent: the segmenter that drives it (:mod:`.segmenter`), the steps and the one function
-that decides the next (:mod:`.steps`), each window's state (:mod:`.state`), and the helpers that batch
-windows (:mod:`.batches`, :mod:`.clock`)."""
+"""Level two's descent: the segmenter that drives it, the steps and the one function that decides the
+next, each window's state, and the helpers that batch windows and time their stages."""

@@ -1,2 +1,1 @@
-"""EMSGC's energy: the data term (:mod:`.data_term`), the spatio-temporal event graph of the Potts term
-(:mod:`.graph`) and the label cost (:mod:`.label_cost`)."""
+"""EMSGC's energy: the data term, the spatio-temporal event graph of the Potts term, and the label cost."""

@@ -1,2 +1,2 @@
-"""Image formation: events warped by a motion (:mod:`.warp`), splatted by bilinear voting (:mod:`.splat`),
-blurred by a Gaussian (:mod:`.blur`), and the variance of such images with its gradient (:mod:`.variance`)."""
+"""Image formation: events warped by a motion, splatted by bilinear voting and blurred by a Gaussian, and
+the variance of such images with its gradient."""

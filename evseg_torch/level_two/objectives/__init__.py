@@ -1,2 +1,2 @@
-"""Contrast objectives and losses of images of warped events: one motion per cluster (:mod:`.contrast`),
-or soft assignments to several (:mod:`.multi_model`). Losses are minimised: each is a negative contrast."""
+"""Contrast objectives and losses of images of warped events, of one motion per cluster or of soft
+assignments to several. Losses are minimised: each is a negative contrast."""
