@@ -17,8 +17,7 @@ from evseg_torch.errors import (
 )
 from evseg_torch.events import EVENT_DTYPE, EventBatch, as_events, batch_windows, to_torch
 from evseg_torch.io import load_events
-
-__version__ = "0.1.0"
+from evseg_torch.version import __version__
 
 _LAZY = {"CascadedSegmenter", "Segmentation"}
 

@@ -28,10 +28,10 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import replace
 
-from evseg_torch import __version__
 from evseg_torch.app.jobs import Job, failure, one_line
 from evseg_torch.app.runs import segment_file
 from evseg_torch.errors import EvsegError
+from evseg_torch.version import __version__
 
 log = logging.getLogger("evseg")
 

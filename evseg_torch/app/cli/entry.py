@@ -7,7 +7,6 @@ import logging
 import signal
 import sys
 
-from evseg_torch import __version__
 from evseg_torch.app.cli import (
     demo,
     evaluate,
@@ -16,6 +15,7 @@ from evseg_torch.app.cli import (
 )
 from evseg_torch.app.cli.options import THREADS_HELP, common_options, use_threads
 from evseg_torch.errors import EvsegError
+from evseg_torch.version import __version__
 
 
 def main(argv: list[str] | None = None) -> int:

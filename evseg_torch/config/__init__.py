@@ -1,7 +1,7 @@
 """Hyper-parameters as nested frozen dataclasses, loaded strictly from YAML.
 
 Every hyper-parameter of the pipeline is defined once: its default, its documentation and its
-validation, in the sections of :mod:`evseg_torch.config_sections` (:class:`SegmenterConfig` and the
+validation, in the sections of :mod:`evseg_torch.config.sections` (:class:`SegmenterConfig` and the
 sections it holds), which are imported from here. Names follow EMSGC (``lambda_smooth``,
 ``lambda_label``, ``n_iter_segmentation``) and pyprogressivex (``threshold``, ``conf``,
 ``minimum_point_number``). Field names are unique across sections, so a flat keyword such as
@@ -9,9 +9,9 @@ sections it holds), which are imported from here. Names follow EMSGC (``lambda_s
 
 Each section validates itself when it is built (``__post_init__``), from YAML, from keywords or by
 :func:`dataclasses.replace`: a field's type (a bool is not an integer; a float must be finite), its range
-(:func:`~evseg_torch.config_fields.setting`'s bounds) and its choices; an integer given for a float field
+(:func:`~evseg_torch.config.fields.setting`'s bounds) and its choices; an integer given for a float field
 becomes a float. Unknown keys, in files or in keywords, and invalid values are
-:class:`~evseg_torch.errors.ConfigError` naming the key (:mod:`evseg_torch.config_fields`). The modules
+:class:`~evseg_torch.errors.ConfigError` naming the key (:mod:`evseg_torch.config.fields`). The modules
 take their settings and their defaults from these sections
 (:meth:`~evseg_torch.level_two.descent.segmenter.GraphCutContrastSegmenter.from_config`; the functions'
 defaults are the fields' own), so a module's defaults are the config's.
@@ -35,7 +35,7 @@ from pathlib import Path
 
 import yaml
 
-from evseg_torch.config_sections import (
+from evseg_torch.config.sections import (
     FeatureConfig,
     LevelOneConfig,
     LevelTwoConfig,

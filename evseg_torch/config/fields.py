@@ -1,6 +1,6 @@
 """How a config field is declared and validated: the machinery behind :mod:`evseg_torch.config`'s sections.
 
-A section (:mod:`evseg_torch.config_sections`) is a frozen dataclass derived from :class:`Section`, each
+A section (:mod:`evseg_torch.config.sections`) is a frozen dataclass derived from :class:`Section`, each
 field declared by :func:`setting` with its default and the bounds or choices its value must meet.
 :class:`Section` checks every field when the section is built (``__post_init__``): its type (a bool is
 not an integer; a float must be finite; an integer given for a float field becomes a float, a list for

@@ -2,7 +2,7 @@
 
 :class:`SegmenterConfig` holds a window's settings (:class:`WindowConfig`), level one's features
 (:class:`FeatureConfig`) and Progressive-X (:class:`LevelOneConfig`), and level two
-(:class:`LevelTwoConfig`). Each field is declared with :func:`~evseg_torch.config_fields.setting` (its
+(:class:`LevelTwoConfig`). Each field is declared with :func:`~evseg_torch.config.fields.setting` (its
 default and its bounds) and checked when its section is built; each field's documentation says what it
 does and, in a clause, why its default. Import them from :mod:`evseg_torch.config`, which also loads and
 writes them.
@@ -14,7 +14,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from evseg_torch.config_fields import Names, Section, setting
+from evseg_torch.config.fields import Names, Section, setting
 
 __all__ = ["FeatureConfig", "LevelOneConfig", "LevelTwoConfig", "SegmenterConfig", "WindowConfig"]
 
