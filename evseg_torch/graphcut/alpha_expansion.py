@@ -49,29 +49,22 @@ the maximum flow itself (Boykov-Kolmogorov, single-threaded) takes most of the t
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import maxflow
 import numpy as np
-from scipy import sparse
-from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from evseg_torch.backend import kernel
-from evseg_torch.errors import EvsegError, ShapeError
+from evseg_torch.graphcut.problem import (
+    GraphCutError,
+    LabellingProblem,
+    internal_labels,
+    prepare_problem,
+    problem_energy,
+)
 from evseg_torch.validation import check_integer
 
-__all__ = [
-    "ExpansionResult",
-    "GraphCutError",
-    "PottsGraph",
-    "alpha_expansion",
-    "labeling_energy",
-    "potts_graph",
-]
-
-
-class GraphCutError(EvsegError, ValueError):
-    """A graph-cut argument holds an invalid value (negative weight, NaN, label out of range)."""
+__all__ = ["ExpansionResult", "alpha_expansion"]
 
 
 @dataclass(frozen=True)
@@ -91,266 +84,8 @@ class ExpansionResult:
     n_cycles: int
 
 
-@dataclass(frozen=True)
-class _Layout:
-    """Node numbering and edge order of the cut graphs, chosen once per edge set for memory locality.
-
-    Maximum flow on a neighbourhood graph whose node ids are scattered (events sorted by time, random
-    points) is much slower than on a bandwidth-reducing (reverse Cuthill-McKee) numbering with the
-    edges sorted by their first end, so the graphs use that numbering; energies keep the caller's
-    order.
-    """
-
-    node_id: np.ndarray  # (N,) graph node id of every node
-    graph_order: np.ndarray  # (N,) node of every graph id, the inverse permutation of node_id
-    tail: np.ndarray  # (E',) caller's node indices, edges in graph order, graph_tail < graph_head
-    head: np.ndarray
-    graph_tail: np.ndarray  # (E',) uint32 graph node ids, as PyMaxflow stores them
-    graph_head: np.ndarray
-    weight: np.ndarray  # (E',) positive
-
-
-@dataclass(frozen=True)
-class PottsGraph:
-    """A validated Potts edge set with the node numbering of its cut graphs, reusable across calls.
-
-    Build it with :func:`potts_graph` and pass it as ``edges`` to :func:`alpha_expansion` or
-    :func:`labeling_energy` when the same graph is labelled several times (level two's outer rounds):
-    the validation and the reverse Cuthill-McKee numbering are then paid once.
-
-    Attributes:
-        n_nodes: number of nodes the edges index.
-        n_edges: number of edges kept (positive weight, distinct ends).
-    """
-
-    n_nodes: int
-    layout: _Layout
-
-    @property
-    def n_edges(self) -> int:
-        return len(self.layout.weight)
-
-
-@dataclass(frozen=True)
-class _Problem:
-    """Validated float64 copy of an energy; the outlier label, if any, is the last column."""
-
-    unary: np.ndarray  # (N, Lp)
-    layout: _Layout  # weights already multiplied by the smoothness
-    label_cost: np.ndarray  # (Lp,)
-    has_outlier: bool
-
-    @property
-    def n_labels(self) -> int:
-        return self.unary.shape[1]
-
-
-def _finite_scalar(value, name: str, *, nonnegative: bool) -> float:
-    array = np.asarray(value)
-    if array.ndim != 0:
-        raise ShapeError(f"{name} must be a scalar, got shape {array.shape}")
-    if not np.issubdtype(array.dtype, np.number) or np.iscomplexobj(array):
-        raise GraphCutError(f"{name} must be a real number, got {value!r}")
-    scalar = float(array)
-    if not np.isfinite(scalar):
-        raise GraphCutError(f"{name} must be finite, got {scalar}")
-    if nonnegative and scalar < 0:
-        raise GraphCutError(f"{name} must be non-negative, got {scalar}")
-    return scalar
-
-
-def _real_array(value, name: str) -> np.ndarray:
-    array = np.asarray(value)
-    if not (np.issubdtype(array.dtype, np.number) or array.dtype == np.bool_) or np.iscomplexobj(array):
-        raise GraphCutError(f"{name} must hold real numbers, got dtype {array.dtype}")
-    array = array.astype(np.float64)
-    if not np.isfinite(array).all():
-        raise GraphCutError(f"{name} must be finite (found NaN or inf)")
-    return array
-
-
-def _integer_array(value, name: str) -> np.ndarray:
-    array = np.asarray(value)
-    if array.size and not np.issubdtype(array.dtype, np.integer):
-        raise GraphCutError(f"{name} must be an integer array, got dtype {array.dtype}")
-    return array.astype(np.intp)
-
-
-def _edge_arrays(edges, edge_weights, n_nodes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Validated ``(tail, head, weight)``; self-loops and zero weights never cost anything and are dropped."""
-    pairs = _integer_array(edges, "edges")
-    if pairs.ndim != 2 or pairs.shape[1] != 2:
-        raise ShapeError(f"edges must have shape (E, 2), got {pairs.shape}")
-    if pairs.size and (pairs.min() < 0 or pairs.max() >= n_nodes):
-        raise GraphCutError(
-            f"edges must index nodes in [0, {n_nodes}), got values in [{pairs.min()}, {pairs.max()}]"
-        )
-    if edge_weights is None:
-        weight = np.ones(len(pairs))
-    else:
-        weight = _real_array(edge_weights, "edge_weights")
-        if weight.shape != (len(pairs),):
-            raise ShapeError(f"edge_weights must have shape ({len(pairs)},) like edges, got {weight.shape}")
-        if (weight < 0).any():
-            raise GraphCutError("edge_weights must be non-negative")
-    keep = (weight > 0) & (pairs[:, 0] != pairs[:, 1])
-    return pairs[keep, 0], pairs[keep, 1], weight[keep]
-
-
-def _prepare(
-    unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost, reorder=True
-) -> _Problem:
-    data = _real_array(unary, "unary")
-    if data.ndim != 2 or data.shape[1] == 0:
-        raise ShapeError(f"unary must have shape (N, L) with L >= 1, got {data.shape}")
-    n_nodes, n_labels = data.shape
-
-    if isinstance(edges, PottsGraph):
-        if edge_weights is not None:
-            raise GraphCutError("edge_weights must be None with a PottsGraph, whose weights are built in")
-        if edges.n_nodes != n_nodes:
-            raise ShapeError(f"the PottsGraph has {edges.n_nodes} nodes but unary has {n_nodes} rows")
-        layout = edges.layout
-    else:
-        layout = _layout(n_nodes, *_edge_arrays(edges, edge_weights, n_nodes), reorder=reorder)
-    scale = _finite_scalar(smoothness, "smoothness", nonnegative=True)
-    if scale == 0:
-        layout = _layout(n_nodes, *(np.zeros(0, dtype=np.intp),) * 2, np.zeros(0), reorder=False)
-    elif scale != 1:
-        layout = replace(layout, weight=layout.weight * scale)
-
-    costs = _real_array(label_cost, "label_cost")
-    if costs.ndim == 0:
-        costs = np.full(n_labels, float(costs))
-    elif costs.shape != (n_labels,):
-        raise ShapeError(f"label_cost must be a scalar or have shape ({n_labels},), got {costs.shape}")
-    if (costs < 0).any():
-        raise GraphCutError("label_cost must be non-negative")
-
-    has_outlier = outlier_cost is not None
-    if has_outlier:
-        outlier = _finite_scalar(outlier_cost, "outlier_cost", nonnegative=False)
-        data = np.concatenate([data, np.full((n_nodes, 1), outlier)], axis=1)
-        costs = np.append(costs, _finite_scalar(outlier_label_cost, "outlier_label_cost", nonnegative=True))
-    return _Problem(data, layout, costs, has_outlier)
-
-
-def _internal_labels(labels, problem: _Problem, name: str) -> np.ndarray:
-    """Map public labels (``-1`` = outlier) to column indices of ``problem.unary``."""
-    array = _integer_array(labels, name)
-    n_nodes = problem.unary.shape[0]
-    if array.shape != (n_nodes,):
-        raise ShapeError(f"{name} must have shape ({n_nodes},), got {array.shape}")
-    n_models = problem.n_labels - problem.has_outlier
-    low = -1 if problem.has_outlier else 0
-    if array.size and (array.min() < low or array.max() >= n_models):
-        raise GraphCutError(
-            f"{name} must lie in [{low}, {n_models}) (-1 only with outlier_cost), got "
-            f"values in [{array.min()}, {array.max()}]"
-        )
-    return np.where(array < 0, problem.n_labels - 1, array)
-
-
-def _energy(problem: _Problem, labels: np.ndarray) -> float:
-    unary = np.take_along_axis(problem.unary, labels[:, None], axis=1).sum()
-    layout = problem.layout
-    potts = layout.weight[labels[layout.tail] != labels[layout.head]].sum()
-    used = np.bincount(labels, minlength=problem.n_labels) > 0
-    return float(unary) + float(potts) + float(problem.label_cost[used].sum())
-
-
-def labeling_energy(
-    labels,
-    unary,
-    edges,
-    edge_weights=None,
-    *,
-    smoothness=1.0,
-    label_cost=0.0,
-    outlier_cost=None,
-    outlier_label_cost=0.0,
-) -> float:
-    """Energy of a labelling: data + Potts + label costs (see the module docstring).
-
-    Args:
-        labels: integer :math:`(N,)` labels in ``[0, L)``, or ``-1`` (outlier) if ``outlier_cost`` is set.
-        unary: data costs :math:`(N, L)`.
-        edges: integer node pairs :math:`(E, 2)`, each undirected edge listed once; duplicates add up;
-            or a :class:`PottsGraph` (then ``edge_weights`` must be ``None``).
-        edge_weights: non-negative :math:`(E,)`; ones by default.
-        smoothness: non-negative Potts weight λ, multiplying every edge weight.
-        label_cost: non-negative scalar or :math:`(L,)`, paid once for every label in use.
-        outlier_cost: constant data cost of the outlier label at every node; ``None`` for no outlier label.
-        outlier_label_cost: label cost of the outlier label.
-
-    Returns:
-        The energy as a Python float.
-
-    Raises:
-        ShapeError: an argument has the wrong shape.
-        GraphCutError: negative weights or costs, NaN or inf, labels or node indices out of range.
-    """
-    problem = _prepare(
-        unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost, reorder=False
-    )
-    return _energy(problem, _internal_labels(labels, problem, "labels"))
-
-
 # Members per group node of the label-cost gadget (see _add_label_costs).
 _GROUP_SIZE = 32
-
-
-def _layout(n_nodes: int, tail, head, weight, reorder: bool = True) -> _Layout:
-    graph_order = np.arange(n_nodes)
-    if reorder and len(tail):
-        ends = np.concatenate([tail, head])
-        adjacency = sparse.csr_array(
-            (np.ones(len(ends), dtype=np.int32), (ends, np.roll(ends, len(tail)))), shape=(n_nodes, n_nodes)
-        )
-        graph_order = reverse_cuthill_mckee(adjacency, symmetric_mode=True).astype(np.intp)
-    node_id = np.empty(n_nodes, dtype=np.intp)
-    node_id[graph_order] = np.arange(n_nodes)
-    first = node_id[tail] < node_id[head]
-    tail, head = np.where(first, tail, head), np.where(first, head, tail)
-    order = np.argsort(node_id[tail], kind="stable")
-    tail, head = tail[order], head[order]
-    return _Layout(
-        node_id,
-        graph_order,
-        tail,
-        head,
-        node_id[tail].astype(np.uint32),
-        node_id[head].astype(np.uint32),
-        weight[order],
-    )
-
-
-def potts_graph(edges, edge_weights=None, *, n_nodes: int, reorder: bool = True) -> PottsGraph:
-    """Validate a Potts edge set once and choose the node numbering of its cut graphs.
-
-    Args:
-        edges: integer node pairs :math:`(E, 2)`, each undirected edge listed once; duplicates add up.
-        edge_weights: non-negative :math:`(E,)`; ones by default. The ``smoothness`` of each call
-            multiplies them.
-        n_nodes: number of nodes, the ``N`` of the unary costs it will be used with.
-        reorder: number the cut graphs' nodes in reverse Cuthill-McKee order (see :class:`_Layout`);
-            ``False`` keeps the caller's numbering, as good when it already follows space (pixels in
-            row-major order: level two's sites) and cheaper, as no numbering is computed.
-
-    Returns:
-        :class:`PottsGraph`, to pass as ``edges`` (with ``edge_weights=None``).
-
-    Raises:
-        ShapeError: an argument has the wrong shape.
-        GraphCutError: negative weights, NaN or inf, node indices out of range.
-
-    Example:
-        >>> graph = potts_graph(np.array([[0, 1], [1, 2]]), n_nodes=3)
-        >>> alpha_expansion(np.array([[0.0, 2.0], [2.0, 0.0], [0.0, 2.0]]), graph, smoothness=3.0).labels
-        array([0, 0, 0])
-    """
-    n_nodes = check_integer(n_nodes, "n_nodes", error=GraphCutError)
-    return PottsGraph(n_nodes, _layout(n_nodes, *_edge_arrays(edges, edge_weights, n_nodes), reorder=reorder))
 
 
 def _add_label_costs(graph, label_cost, member_label, members, n_groups) -> None:
@@ -386,7 +121,7 @@ def _add_label_costs(graph, label_cost, member_label, members, n_groups) -> None
     )
 
 
-def _move_terms(problem: _Problem, labels: np.ndarray, alpha: int):
+def _move_terms(problem: LabellingProblem, labels: np.ndarray, alpha: int):
     """The arrays of one α-move: the NumPy form of :func:`~evseg_torch.kernels.expansion.move_terms`
     (the same returns, bit for bit)."""
     layout = problem.layout
@@ -421,7 +156,7 @@ def _move_terms(problem: _Problem, labels: np.ndarray, alpha: int):
     return rise - boundary, np.bincount(labels, minlength=n_labels), pairs, moving
 
 
-def _retained_labels(problem: _Problem, slack: np.ndarray) -> np.ndarray:
+def _retained_labels(problem: LabellingProblem, slack: np.ndarray) -> np.ndarray:
     """The labels that every optimal α-move keeps in use; their label costs are constants of the move.
 
     A move drops a label ``l != α`` only by moving all of ``l``'s nodes to α. Against the same move with
@@ -441,7 +176,7 @@ def _retained_labels(problem: _Problem, slack: np.ndarray) -> np.ndarray:
     return slack > problem.label_cost
 
 
-def _expand(problem: _Problem, labels: np.ndarray, alpha: int) -> np.ndarray:
+def _expand(problem: LabellingProblem, labels: np.ndarray, alpha: int) -> np.ndarray:
     """Best α-expansion of ``labels`` ignoring α's label cost, by one minimum cut (new array)."""
     layout = problem.layout
     if not np.any(labels != alpha):
@@ -530,15 +265,17 @@ def alpha_expansion(
         >>> alpha_expansion(unary, np.array([[0, 1], [1, 2]]), smoothness=3.0).labels
         array([0, 0, 0])
     """
-    problem = _prepare(unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost)
+    problem = prepare_problem(
+        unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost
+    )
     max_cycles = check_integer(max_cycles, "max_cycles", error=GraphCutError)
     if init_labels is None:
         labels = np.argmin(problem.unary, axis=1)
     else:
-        labels = _internal_labels(init_labels, problem, "init_labels")
+        labels = internal_labels(init_labels, problem, "init_labels")
     generator = None if rng is None else np.random.default_rng(rng)
 
-    energy = _energy(problem, labels)
+    energy = problem_energy(problem, labels)
     history = [energy]
     # Moves and changes are numbered (the initial labelling is change 1); a label needs a new attempt only
     # if the labelling changed after its last attempt.
@@ -556,7 +293,7 @@ def alpha_expansion(
             candidate = _expand(problem, labels, int(alpha))
             if np.array_equal(candidate, labels):
                 continue
-            candidate_energy = _energy(problem, candidate)
+            candidate_energy = problem_energy(problem, candidate)
             if candidate_energy < energy:
                 labels, energy, last_change = candidate, candidate_energy, move
         n_cycles += 1

@@ -14,7 +14,7 @@ import numpy as np
 
 from evseg_torch.config import LevelOneConfig
 from evseg_torch.errors import ModelError, ShapeError
-from evseg_torch.graphcut.alpha_expansion import PottsGraph, potts_graph
+from evseg_torch.graphcut.problem import PottsGraph, potts_graph
 from evseg_torch.level_one.neighborhood import adjacency, neighborhood_graph
 from evseg_torch.motion.base import MotionModel
 

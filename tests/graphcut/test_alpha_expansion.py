@@ -7,7 +7,8 @@ import pytest
 from evseg_torch.backend import using_backend
 from evseg_torch.errors import EvsegError, ShapeError
 from evseg_torch.graphcut import ExpansionResult, GraphCutError, alpha_expansion, labeling_energy
-from evseg_torch.graphcut.alpha_expansion import _expand, _move_terms, _prepare, _retained_labels, potts_graph
+from evseg_torch.graphcut.alpha_expansion import _expand, _move_terms, _retained_labels
+from evseg_torch.graphcut.problem import potts_graph, prepare_problem
 from evseg_torch.pipeline import CascadedSegmenter
 from evseg_torch.synthetic import make_scene
 
@@ -103,7 +104,7 @@ class TestExpansionMove:
         label_cost = rng.uniform(0.0, 3.0, size=n_labels) * (seed % 3 != 0)
         outlier = (1.5 - 3.0 * (seed % 4 == 1), 2.0) if seed % 2 else (None, 0.0)
         args = (unary, edges, weights, 1.3, label_cost, *outlier)
-        problem = _prepare(*args)
+        problem = prepare_problem(*args)
         start = rng.integers(0, problem.n_labels, size=n_nodes)
         for alpha, unused in itertools.product(range(problem.n_labels), [False, True]):
             # With α unused, its label cost is paid only if the move is taken.
@@ -139,7 +140,7 @@ class TestRetainedLabels:
         labels = rng.integers(0, n_labels, size=n_nodes)
         unary[np.arange(n_nodes), labels] -= rng.uniform(0.0, 3.0)  # labels supported by their data
         label_cost = rng.uniform(0.0, 4.0, size=n_labels)
-        problem = _prepare(unary, edges, weights, 0.8, label_cost, None, 0.0)
+        problem = prepare_problem(unary, edges, weights, 0.8, label_cost, None, 0.0)
         for alpha in range(n_labels):
             movable = np.flatnonzero(labels != alpha)
             masks = np.array(list(itertools.product([False, True], repeat=len(movable))), dtype=bool)
@@ -197,7 +198,9 @@ class TestRetainedLabels:
                 full = alpha_expansion(unary, graph, **kwargs)
             np.testing.assert_array_equal(pruned.labels, full.labels)
             assert pruned.energy_history == full.energy_history
-            problem = _prepare(unary, graph, None, kwargs["smoothness"], kwargs["label_cost"], None, 0.0)
+            problem = prepare_problem(
+                unary, graph, None, kwargs["smoothness"], kwargs["label_cost"], None, 0.0
+            )
             labels = (
                 np.argmin(problem.unary, axis=1) if kwargs["init_labels"] is None else kwargs["init_labels"]
             )
@@ -485,7 +488,9 @@ class TestCompiledMoves:
         points = rng.uniform(0, 10, size=(300, 2))
         unary = rng.uniform(-1, 5, size=(300, 4))
         outlier = (2.0, 1.0) if seed % 2 else (None, 0.0)
-        problem = _prepare(unary, _knn_edges(points, 5), None, 0.7, rng.uniform(0, 9, size=4), *outlier)
+        problem = prepare_problem(
+            unary, _knn_edges(points, 5), None, 0.7, rng.uniform(0, 9, size=4), *outlier
+        )
         layout = problem.layout
         labels = rng.integers(0, problem.n_labels - 1, size=300)  # the last label unused
         edges = (layout.tail, layout.head, layout.weight, layout.graph_tail, layout.graph_head)

@@ -5,7 +5,7 @@ import pytest
 
 from evseg_torch.config import LevelOneConfig
 from evseg_torch.errors import ConfigError, ModelError
-from evseg_torch.graphcut.alpha_expansion import labeling_energy
+from evseg_torch.graphcut.problem import labeling_energy
 from evseg_torch.level_one.gc_ransac import Correspondences
 from evseg_torch.level_one.progressive_x import (
     OUTLIER,

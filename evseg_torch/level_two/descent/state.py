@@ -17,7 +17,7 @@ from torch import Tensor
 
 from evseg_torch.config import LevelTwoConfig
 from evseg_torch.events import EventBatch
-from evseg_torch.graphcut.alpha_expansion import PottsGraph, potts_graph
+from evseg_torch.graphcut.problem import PottsGraph, potts_graph
 from evseg_torch.level_two.checks import check_labels, check_params
 from evseg_torch.level_two.descent.steps import Step
 from evseg_torch.level_two.energy.graph import event_graph, site_graph

@@ -7,7 +7,7 @@ import torch
 from evseg_torch.errors import ConfigError, EventFormatError, ModelError, ShapeError
 from evseg_torch.evaluation.metrics import labelling_accuracy, per_object_iou
 from evseg_torch.events import EventBatch, batch_windows, to_torch
-from evseg_torch.graphcut.alpha_expansion import labeling_energy
+from evseg_torch.graphcut.problem import labeling_energy
 from evseg_torch.level_two.descent import segmenter as segmenter_module
 from evseg_torch.level_two.descent.segmenter import GraphCutContrastSegmenter, LevelTwoResult
 from evseg_torch.level_two.discovery import Discovery
