@@ -12,7 +12,6 @@ import pytest
 from evseg_torch.app.jobs import Job, with_window
 from evseg_torch.app.runs import segment_file
 from evseg_torch.app.signals import Stopped
-from evseg_torch.app.threads import set_threads
 from evseg_torch.app.workers import WindowPool
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.evaluation.metrics import match_clusters, per_object_iou
@@ -208,7 +207,6 @@ def test_single_windows_are_numbered_as_a_streams_first(one_thread):
 
 
 def test_workers_and_batches_do_not_change_ids(one_thread):
-    set_threads(1)  # workers forked while OpenCV runs its own thread pool would hang in it
     scene = make_scene(SIZE, 0.15, n_objects=2, n_events=6000, rng=5)
     segmenter = CascadedSegmenter(SIZE)
     one = list(segmenter.stream(scene.events, window_ms=30, batch_size=3))

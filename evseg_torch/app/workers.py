@@ -11,9 +11,9 @@ process on one thread, window by window.
 Processes, not threads: PyMaxflow holds the GIL through every graph cut, and level one is mostly
 Python. They start the platform's default way, as torch's DataLoader workers do: forked on Linux
 (nothing to re-import), spawned on macOS and Windows, where the calling script needs the usual
-``if __name__ == "__main__":`` guard. A forked worker sets OpenCV's threads, which hangs if OpenCV's own
-thread pool was running in the parent: set the parent's threads first
-(:func:`~evseg_torch.app.threads.set_threads`, as ``evseg`` does).
+``if __name__ == "__main__":`` guard. OpenCV's thread pool is wound down to one thread while the workers
+fork (a worker that inherits its state without its threads would hang in its first
+``cv2.setNumThreads``), then restored.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ class WindowPool:
         >>> from evseg_torch.synthetic import make_scene
         >>> events = make_scene((90, 120), duration=0.06, n_objects=1, rng=0).events
         >>> segmenter = CascadedSegmenter((90, 120))
-        >>> with WindowPool(segmenter, 2, batch_size=2) as pool:  # doctest: +SKIP
+        >>> with WindowPool(segmenter, 2, batch_size=2) as pool:
         ...     results = segmenter.stream(events, window_ms=30, batch_size=2, segment_windows=pool.segment)
         ...     [result.window_index for result in results]
         [0, 1]
@@ -74,7 +74,18 @@ class WindowPool:
                 f"workers ({workers}) must not exceed batch_size ({batch_size}): the workers share out "
                 "the windows of one batch"
             )
-        self._pool = multiprocessing.get_context().Pool(workers, initializer=_start, initargs=(segmenter,))
+        # A worker forked while OpenCV's thread pool exists in this process would hang in its first
+        # cv2.setNumThreads (the pool's state is copied without its threads): the pool is wound down to
+        # this thread for the fork, then restored.
+        import cv2
+
+        threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        try:
+            context = multiprocessing.get_context()
+            self._pool = context.Pool(workers, initializer=_start, initargs=(segmenter,))
+        finally:
+            cv2.setNumThreads(threads)
 
     def segment(self, windows: Sequence, initial_models) -> list:
         """Segment ``windows`` (each starting from ``initial_models``), shared out in consecutive parts.
