@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU check of a lent CUDA machine, as one short script (issue 20, item 8): the tests that take the
+# The GPU check of a lent CUDA machine, as one short script: the tests that take the
 # `device` fixture, on CUDA, then bench_batched.py at B = 1, 8 and 32 on CUDA, then the same at B = 8 on
 # the CPU for the ratio. The machine's own python3 (3.12) and torch are used; kornia and PyMaxflow, which
 # it lacks, come as wheels in .whl/ (git-ignored through .git/info/exclude), fetched beforehand with

@@ -26,6 +26,7 @@ def _run(command: list, cwd: Path) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_installed_wheel_evaluates_eed_with_its_bundled_config(tmp_path, real_data):
     sequence = real_data / "eed_what_is_background"

@@ -177,6 +177,7 @@ def kept_ids(results, scene) -> list[bool]:
     ]
 
 
+@pytest.mark.slow
 def test_objects_keep_their_ids_through_a_continuous_stream(one_thread):
     kept = []
     # Spinning objects, two small fast balls, spinning mixed with weak outlines: 21 of 22 kept when written.

@@ -41,6 +41,7 @@ from evseg_torch.io.guard import existing_file, reading
 from evseg_torch.io.numpy_files import WHAT_NPY, WHAT_NPZ
 from evseg_torch.io.rpg_folder import WHAT as RPG_WHAT
 from evseg_torch.io.rpg_folder import is_sequence as is_rpg_sequence
+from evseg_torch.validation import check_integer
 
 
 class _Format(NamedTuple):
@@ -171,11 +172,10 @@ def iter_event_chunks(
             (raised when the bad chunk is reached).
         EventFormatError: as in :func:`load_events`, raised when the bad chunk is reached.
     """
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int | np.integer) or chunk_size <= 0:
-        raise ConfigError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+    chunk_size = check_integer(chunk_size, "chunk_size", at_least=1)
     path, fmt = _resolve(path)
     options = _options(path, fmt, topic=topic)
-    return _validated_chunks(path, fmt, int(chunk_size), sensor_size, options)
+    return _validated_chunks(path, fmt, chunk_size, sensor_size, options)
 
 
 def _validated_chunks(

@@ -35,6 +35,7 @@ def _written(folder):
     return np.load(folder / "labels.npz")["labels"], rows
 
 
+@pytest.mark.slow
 def test_cluster_run_equals_a_local_run_and_lists_a_bad_input(tmp_path, client, capsys):
     scenes = [scene_file(tmp_path, seed=seed) for seed in (0, 1)]
     backwards = tmp_path / "back.txt"

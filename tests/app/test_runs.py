@@ -61,6 +61,7 @@ def recording(tmp_path_factory):
     return _recording(tmp_path_factory.mktemp("recording") / "rec.npy", windows=16)
 
 
+@pytest.mark.slow
 def test_killed_runs_resume_to_the_uninterrupted_files(recording, tmp_path):
     # SIGTERM and SIGINT alternately at random points of a run (starting up, segmenting, writing figures
     # and video frames), each time followed by --resume: the files at the end equal an uninterrupted run's.

@@ -36,6 +36,7 @@ def _one_thread():
     torch.set_num_threads(threads)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not PROBE.is_dir(), reason="../shared/data/synthetic_probe is not beside the repository")
 def test_probe_scenes():
     paths = sorted(PROBE.glob("scene_*.npz"))
@@ -55,6 +56,7 @@ def test_probe_scenes():
     assert abs_count <= PROBE_FLOORS["abs_count_error"], abs_count
 
 
+@pytest.mark.slow
 def test_hard_family():
     summary = summarize(evaluate_synthetic(CascadedSegmenter((180, 240)), range(20), family="hard"))
     for name, floor in FAMILY_FLOORS.items():

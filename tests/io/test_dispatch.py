@@ -71,7 +71,7 @@ class TestChunks:
 
     @pytest.mark.parametrize("chunk_size", [0, -3, 2.5, True, "10"])
     def test_bad_chunk_size(self, tmp_path, chunk_size):
-        with pytest.raises(ConfigError, match="chunk_size must be a positive integer"):
+        with pytest.raises(ConfigError, match="chunk_size must be an integer of at least 1"):
             iter_event_chunks(tmp_path / "events.txt", chunk_size)
 
     def test_decrease_across_a_chunk_boundary(self, tmp_path):

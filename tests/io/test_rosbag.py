@@ -135,6 +135,7 @@ def test_corrupt_bag(tmp_path):
         load_events(path)
 
 
+@pytest.mark.slow
 def test_a_million_events_stream_in_bounded_memory(tmp_path):
     # What is held: one bag chunk as read from disk (about 1 MB), one decoded message (rosbags makes two
     # Python objects per event, about 600 bytes) and the chunk being assembled; none grows with the bag.

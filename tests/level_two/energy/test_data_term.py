@@ -288,7 +288,7 @@ class TestDataCost:
 
     def test_own_floor_scales_each_layer_by_its_own_sharpness(self):
         # A sparse line beside a dense one, each moving on its own. With the pool's 90th percentile
-        # alone as the floor (the floor before the objects issue) the dense line sets it, and none of the
+        # alone as the floor (the floor before v0.4) the dense line sets it, and none of the
         # sparse line's events costs 0 under its own model; with each event's own floor, the sharpest
         # tenth of each line's events does.
         dense = _edge_events(count=1600, flow=(300.0, -100.0), size=(32, 80), seed=0)
