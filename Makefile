@@ -35,7 +35,7 @@ bench: $(STAMP)
 
 # The documentation with the API reference, from the docstrings: docs/_build/html/index.html.
 docs: $(STAMP)
-	$(PY) -m sphinx -b html -q docs docs/_build/html
+	$(PY) -m sphinx -W --keep-going -b html -q docs docs/_build/html
 
 # The README's figures, from the commands printed under them.
 figures: $(STAMP)
