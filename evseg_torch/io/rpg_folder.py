@@ -16,8 +16,10 @@ import cv2
 import numpy as np
 
 from evseg_torch.errors import ReaderError
-from evseg_torch.io import text
 from evseg_torch.io.eed import load_frame_list
+from evseg_torch.io.text import chunks as text_chunks
+from evseg_torch.io.text import ends as text_ends
+from evseg_torch.io.text import read as read_text
 
 WHAT = "rpg / ECD / EED sequence folder"
 EVENTS = "events.txt"
@@ -31,17 +33,17 @@ def is_sequence(folder: Path) -> bool:
 
 def read(folder: Path) -> np.ndarray:
     """All events, as float64 :math:`(N, 4)` rows ``[t_seconds, x, y, p]``."""
-    return text.read(folder / EVENTS)
+    return read_text(folder / EVENTS)
 
 
 def chunks(folder: Path, chunk_size: int) -> Iterator[np.ndarray]:
     """Blocks of at most ``chunk_size`` lines of ``events.txt``, parsed."""
-    return text.chunks(folder / EVENTS, chunk_size)
+    return text_chunks(folder / EVENTS, chunk_size)
 
 
 def ends(folder: Path) -> np.ndarray | None:
     """The first and the last event of ``events.txt`` (see :func:`.text.ends`)."""
-    return text.ends(folder / EVENTS)
+    return text_ends(folder / EVENTS)
 
 
 def sensor_size(folder: Path) -> tuple[int, int] | None:
