@@ -286,6 +286,7 @@ def potts_graph(edges, edge_weights=None, *, n_nodes: int, reorder: bool = True)
         GraphCutError: negative weights, NaN or inf, node indices out of range.
 
     Example:
+        >>> from evseg_torch.graphcut import alpha_expansion
         >>> graph = potts_graph(np.array([[0, 1], [1, 2]]), n_nodes=3)
         >>> alpha_expansion(np.array([[0.0, 2.0], [2.0, 0.0], [0.0, 2.0]]), graph, smoothness=3.0).labels
         array([0, 0, 0])
