@@ -25,12 +25,22 @@ For each ground-truth box at time ``t_b``:
    spanning half the image around a small GT box does not).
 
 Detection rate = detected / evaluable boxes.
+
+**Why a box is missed** (beyond the protocol; the nested reading): the events compensated into the GT box
+(``Segmentation.warped_xy`` inside it) are counted per cluster, and the cluster holding most of them is
+the box's *owner*. A box not detected is ``background`` when its owner is the background cluster,
+``merged`` when its owner also owns another GT box of the same time (one cluster holds two objects),
+``stretched`` when its owner is its own cluster but that cluster's box does not nest with it (foreign or
+missing events), ``unassigned`` when no event lands in it. Level one's part: the feature tracks whose
+midpoint (their position at the window's centre, the box time) lies in the GT box, and whether one of
+level one's clusters of tracks has most of its tracks there (a model of the box's own). Boxes of the
+same time are scored on one segmentation of their common window.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +54,8 @@ from evseg_torch.pipeline import CascadedSegmenter
 
 EED_SENSOR_SIZE = (180, 240)  # DAVIS240; the boxes are drawn on its 240x180 APS frames
 REFERENCES = ("box", "window_start")
+BOX_OUTCOMES = ("detected", "background", "merged", "stretched", "unassigned")
+"""What became of a GT box under the nested reading (module docstring)."""
 
 PAPER_TABLE_I = {
     # Detection rates (%) from the IROS 2021 paper's Table I: EED, EMSMC, EMSGC, ours (reference §3.1, §4).
@@ -86,7 +98,9 @@ def load_eed_sequence(folder: str | Path) -> EedSequence:
 
 @dataclass(frozen=True)
 class BoxResult:
-    """One ground-truth box: its time, whether it was evaluable, the match and its scores."""
+    """One ground-truth box: its time, whether it was evaluable, the match and its scores, and why it was
+    missed (``outcome``, one of :data:`BOX_OUTCOMES`; ``""`` when not evaluable) with level one's tracks
+    on it and whether a model of level one's pool was its own (module docstring)."""
 
     t_s: float
     gt_box: np.ndarray
@@ -97,6 +111,9 @@ class BoxResult:
     intersection_over_gt: float
     n_clusters: int
     intersection_over_predicted: float = 0.0
+    outcome: str = ""
+    tracks: int = 0
+    own_model: bool = False
 
     @property
     def detected(self) -> bool:
@@ -162,38 +179,120 @@ def evaluate_boxes(
     if reference not in REFERENCES:
         raise ConfigError(f"reference must be one of {REFERENCES}, got {reference!r}")
     half_us = round(window_ms * 500)
-    results = []
-    for t_s, gt in tqdm(list(zip(box_times_s, boxes, strict=True)), desc="boxes", disable=not progress):
+    results = [None] * len(boxes)
+    times = np.asarray(box_times_s, dtype=np.float64)
+    groups = [np.flatnonzero(times == t_s) for t_s in dict.fromkeys(times.tolist())]
+    for group in tqdm(groups, desc="box times", disable=not progress):
+        t_s = float(times[group[0]])
         centre = round(t_s * 1e6)
         begin, end = np.searchsorted(events["t"], [centre - half_us, centre + half_us], side="left")
         window = events[begin:end]
         if len(window) < min_events:
-            results.append(BoxResult(float(t_s), gt, False, len(window), np.full(4, np.nan), 0.0, 0.0, 0))
+            for index in group:
+                empty = BoxResult(t_s, boxes[index], False, len(window), np.full(4, np.nan), 0.0, 0.0, 0)
+                results[index] = empty
             continue
-        t_ref = float(t_s) if reference == "box" else int(window["t"][0]) * 1e-6
+        t_ref = t_s if reference == "box" else int(window["t"][0]) * 1e-6
         segmentation = segmenter(window, t_ref=t_ref)
         candidates = cluster_boxes(segmentation, min_count)
-        best_box, best_iou = np.full(4, np.nan), 0.0
-        for box in candidates.values():
-            iou = float(box_iou(box, gt))
-            if iou > best_iou or np.isnan(best_box[0]):
-                best_box, best_iou = box, iou
-        intersection = float(box_intersection(best_box, gt)) if not np.isnan(best_box[0]) else 0.0
-        result = BoxResult(
-            float(t_s),
-            gt,
-            True,
-            len(window),
-            best_box,
-            best_iou,
-            _ratio(intersection, gt[2] * gt[3]),
-            segmentation.n_clusters,
-            _ratio(intersection, best_box[2] * best_box[3]),
-        )
-        results.append(result)
-        if on_window is not None:
-            on_window(result, segmentation)
+        scored = [
+            _match(t_s, boxes[index], len(window), segmentation.n_clusters, candidates) for index in group
+        ]
+        gt_boxes = np.stack([boxes[index] for index in group])
+        outcomes = box_outcomes(segmentation, gt_boxes, [result.detected_nested for result in scored])
+        tracks, own_model = level_one_support(segmentation, gt_boxes)
+        for k, index in enumerate(group):
+            results[index] = replace(
+                scored[k], outcome=outcomes[k], tracks=int(tracks[k]), own_model=bool(own_model[k])
+            )
+            if on_window is not None:
+                on_window(results[index], segmentation)
     return results
+
+
+def _match(t_s: float, gt: np.ndarray, n_events: int, n_clusters: int, candidates: dict) -> BoxResult:
+    """The GT box matched to the non-background cluster box of highest IoU, with its readings."""
+    best_box, best_iou = np.full(4, np.nan), 0.0
+    for box in candidates.values():
+        iou = float(box_iou(box, gt))
+        if iou > best_iou or np.isnan(best_box[0]):
+            best_box, best_iou = box, iou
+    intersection = float(box_intersection(best_box, gt)) if not np.isnan(best_box[0]) else 0.0
+    return BoxResult(
+        t_s,
+        gt,
+        True,
+        n_events,
+        best_box,
+        best_iou,
+        _ratio(intersection, gt[2] * gt[3]),
+        n_clusters,
+        _ratio(intersection, best_box[2] * best_box[3]),
+    )
+
+
+def _inside(xy: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """Which positions :math:`(n, 2)` lie in the box ``[x, y, w, h]`` (edges included)."""
+    x, y, w, h = box
+    return (xy[:, 0] >= x) & (xy[:, 0] <= x + w) & (xy[:, 1] >= y) & (xy[:, 1] <= y + h)
+
+
+def box_outcomes(segmentation, gt_boxes: np.ndarray, detected) -> list[str]:
+    """What became of each GT box of one window (:data:`BOX_OUTCOMES`, module docstring).
+
+    Args:
+        segmentation: the window's :class:`~evseg_torch.pipeline.Segmentation` (its ``labels``,
+            ``warped_xy`` and ``n_clusters`` are read).
+        gt_boxes: the window's GT boxes ``[x, y, w, h]``, :math:`(k, 4)`.
+        detected: whether each box was detected (the nested reading), :math:`(k,)`.
+
+    Returns:
+        One outcome per box.
+    """
+    labels, n_clusters = segmentation.labels, segmentation.n_clusters
+    assigned = labels >= 0
+    background = int(np.argmax(np.bincount(labels[assigned], minlength=n_clusters))) if assigned.any() else -1
+    owners = []
+    for box in gt_boxes:
+        inside = assigned & _inside(segmentation.warped_xy, box)
+        owners.append(int(np.bincount(labels[inside], minlength=n_clusters).argmax()) if inside.any() else -1)
+    outcomes = []
+    for owner, hit in zip(owners, detected, strict=True):
+        if hit:
+            outcomes.append("detected")
+        elif owner < 0:
+            outcomes.append("unassigned")
+        elif owner == background:
+            outcomes.append("background")
+        elif owners.count(owner) > 1:
+            outcomes.append("merged")
+        else:
+            outcomes.append("stretched")
+    return outcomes
+
+
+def level_one_support(segmentation, gt_boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Level one's tracks on each GT box of one window, and whether a model of its pool is the box's own.
+
+    A track is on a box when its midpoint (its position at the window's centre) lies in it; a cluster of
+    level one's tracks (``feature_labels`` >= 0) is a box's own when most of its tracks are on the box.
+
+    Returns:
+        The tracks on each box, int64 :math:`(k,)`, and whether some cluster is its own, bool :math:`(k,)`.
+    """
+    tracks = segmentation.feature_tracks
+    middle = (tracks.src + tracks.dst) / 2
+    labels = np.asarray(segmentation.feature_labels)
+    clustered = labels >= 0
+    sizes = np.bincount(labels[clustered]) if clustered.any() else np.zeros(0, dtype=np.int64)
+    counts, own = np.zeros(len(gt_boxes), dtype=np.int64), np.zeros(len(gt_boxes), dtype=bool)
+    for k, box in enumerate(gt_boxes):
+        on_box = _inside(middle, box)
+        counts[k] = np.count_nonzero(on_box)
+        if len(sizes):
+            there = np.bincount(labels[on_box & clustered], minlength=len(sizes))
+            own[k] = bool(np.any(2 * there > sizes))
+    return counts, own
 
 
 def evaluate_sequence(
@@ -240,7 +339,9 @@ def _ratio(intersection: float, area: float) -> float:
 def detection_rate(results: list[BoxResult]) -> dict[str, float]:
     """Detection rate (IoU > 0.5), the three overlap readings (``detection_rate_overlap``: intersection
     over GT area > 0.5, ``detection_rate_over_predicted``: over predicted area > 0.5,
-    ``detection_rate_nested``: the boxes nest) and the mean IoU, over the evaluable boxes."""
+    ``detection_rate_nested``: the boxes nest) and the mean IoU, over the evaluable boxes; how many boxes
+    were missed for each reason (``missed_<outcome>``, :data:`BOX_OUTCOMES`) and how many had level one's
+    tracks on them and a model of their own (``boxes_with_tracks``, ``boxes_with_own_model``)."""
     evaluable = [r for r in results if r.evaluable]
     if not evaluable:
         return {"boxes": len(results), "evaluable": 0, "detection_rate": float("nan")}
@@ -254,4 +355,7 @@ def detection_rate(results: list[BoxResult]) -> dict[str, float]:
         * float(np.mean([r.intersection_over_predicted > 0.5 for r in evaluable])),
         "detection_rate_nested": 100.0 * float(np.mean([r.detected_nested for r in evaluable])),
         "mean_iou": float(np.mean([r.iou for r in evaluable])),
+        **{f"missed_{outcome}": sum(r.outcome == outcome for r in evaluable) for outcome in BOX_OUTCOMES[1:]},
+        "boxes_with_tracks": sum(r.tracks > 0 for r in evaluable),
+        "boxes_with_own_model": sum(r.own_model for r in evaluable),
     }

@@ -39,6 +39,11 @@ def test_evaluate_eed_on_a_real_sequence(real_data, tmp_path, capsys):
     assert row["detection_rate_nested"] >= row["detection_rate"]
     assert (tmp_path / "figures" / "occlusions.png").stat().st_size > 10_000
     assert row["reference"] == "box"
+    # Why each box was missed, and level one's part (measured: 5 background, 2 stretched; tracks on 12).
+    assert "missed boxes (nested reading) by reason" in table
+    missed = sum(row[f"missed_{reason}"] for reason in ("background", "merged", "stretched", "unassigned"))
+    assert missed == round(13 * (1 - row["detection_rate_nested"] / 100))
+    assert 0 <= row["boxes_with_own_model"] <= row["boxes_with_tracks"] <= 13
 
 
 def test_evaluate_synthetic_over_pipeline_seeds(tmp_path, capsys):

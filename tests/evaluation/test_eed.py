@@ -7,26 +7,32 @@ from evseg_torch.config import SegmenterConfig, replace_config
 from evseg_torch.errors import ConfigError, ReaderError
 from evseg_torch.evaluation import eed
 from evseg_torch.evaluation.eed import (
+    BOX_OUTCOMES,
     EED_SENSOR_SIZE,
     BoxResult,
     EedSequence,
+    box_outcomes,
     cluster_boxes,
     detection_rate,
     evaluate_boxes,
     evaluate_sequence,
+    level_one_support,
     load_eed_sequence,
 )
 from evseg_torch.events import EVENT_DTYPE
 
 
-def _segmentation(warped_xy, labels, sensor_size=(30, 40)):
+def _segmentation(warped_xy, labels, sensor_size=(30, 40), tracks=((), ()), track_labels=()):
     labels = np.asarray(labels, dtype=np.int64)
     n_clusters = int(labels.max()) + 1 if len(labels) else 0
+    src, dst = (np.asarray(points, dtype=np.float64).reshape(-1, 2) for points in tracks)
     return SimpleNamespace(
         labels=labels,
         warped_xy=np.asarray(warped_xy, dtype=np.float64),
         n_clusters=n_clusters,
         sensor_size=sensor_size,
+        feature_tracks=SimpleNamespace(src=src, dst=dst),
+        feature_labels=np.asarray(track_labels, dtype=np.int64),
     )
 
 
@@ -194,6 +200,56 @@ class TestEvaluateBoxes:
         )
         assert result.evaluable and result.iou == 0.0 and result.intersection_over_gt == 0.0
         assert np.isnan(result.predicted_box).all()
+
+
+class TestWhyBoxesAreMissed:
+    # Background (label 0) everywhere; two objects' events compensated into boxes A and B.
+    A, B, C = [10.0, 10.0, 4.0, 4.0], [20.0, 10.0, 4.0, 4.0], [30.0, 20.0, 4.0, 4.0]
+
+    def _window(self, object_labels):
+        """40 background events at (2, 2), 5 events in A and 5 in B labelled ``object_labels``."""
+        xy = [[2.0, 2.0]] * 40 + [[12.0, 12.0]] * 5 + [[22.0, 12.0]] * 5
+        labels = [0] * 40 + [object_labels[0]] * 5 + [object_labels[1]] * 5
+        return _segmentation(xy, labels)
+
+    def test_each_reason(self):
+        boxes = np.array([self.A, self.B])
+        assert box_outcomes(self._window((1, 2)), boxes, [True, False]) == ["detected", "stretched"]
+        assert box_outcomes(self._window((1, 1)), boxes, [False, False]) == ["merged", "merged"]
+        assert box_outcomes(self._window((0, 1)), boxes, [False, False]) == ["background", "stretched"]
+        no_events = np.array([self.C])
+        assert box_outcomes(self._window((1, 2)), no_events, [False]) == ["unassigned"]
+        assert set(BOX_OUTCOMES) == {"detected", "background", "merged", "stretched", "unassigned"}
+
+    def test_level_one_support(self):
+        # Three tracks whose midpoints lie in A (cluster 0), one in B (cluster 1, which has two more
+        # elsewhere), one unclustered in B.
+        src = [[11.0, 11.0], [12.0, 12.0], [13.0, 11.0], [21.0, 11.0], [5.0, 5.0], [6.0, 6.0], [22.0, 12.0]]
+        dst = [[13.0, 13.0], [12.0, 12.0], [13.0, 13.0], [21.0, 13.0], [5.0, 5.0], [6.0, 6.0], [22.0, 12.0]]
+        window = _segmentation(np.zeros((1, 2)), [0], tracks=(src, dst), track_labels=[0, 0, 0, 1, 1, 1, -1])
+        tracks, own = level_one_support(window, np.array([self.A, self.B, self.C]))
+        assert tracks.tolist() == [3, 2, 0]
+        assert own.tolist() == [True, False, False]  # B holds one of cluster 1's three tracks
+
+    def test_boxes_of_one_time_share_one_segmentation(self):
+        calls = []
+
+        def two_objects(window, t_ref):
+            calls.append(t_ref)
+            xy = np.concatenate(
+                [[[12.0, 12.0]] * 5 + [[22.0, 12.0]] * 5, np.full((len(window) - 10, 2), 2.0)]
+            )
+            return _segmentation(xy, np.r_[np.ones(10), np.zeros(len(window) - 10)])
+
+        boxes = np.array([self.A, self.B, self.A])
+        results = evaluate_boxes(
+            two_objects, _events(2000), np.array([0.005, 0.005, 0.015]), boxes, window_ms=4, min_events=10
+        )
+        assert calls == [0.005, 0.015]
+        assert [r.outcome for r in results] == ["merged", "merged", "stretched"]
+        rates = detection_rate(results)
+        assert (rates["missed_merged"], rates["missed_stretched"], rates["missed_background"]) == (2, 1, 0)
+        assert rates["boxes_with_tracks"] == rates["boxes_with_own_model"] == 0
 
 
 def test_evaluate_sequence_windows_from_the_config(monkeypatch):

@@ -45,7 +45,13 @@ def add_parser(protocols, common: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from evseg_torch.config import bundled_config, load_config
-    from evseg_torch.evaluation.eed import PAPER_TABLE_I, detection_rate, evaluate_sequence, load_eed_sequence
+    from evseg_torch.evaluation.eed import (
+        BOX_OUTCOMES,
+        PAPER_TABLE_I,
+        detection_rate,
+        evaluate_sequence,
+        load_eed_sequence,
+    )
     from evseg_torch.viz.figures import boxes_figure, save_figure
     from evseg_torch.viz.render import render_labels
 
@@ -107,5 +113,18 @@ def run(args) -> int:
             f"{row.get('mean_iou', 0):>5.2f} | "
             + " ".join(f"{paper.get(k, float('nan')):>6.2f}" for k in ("EED", "EMSMC", "EMSGC", "IROS 2021"))
         )
+    print("missed boxes (nested reading) by reason, and level one's tracks on the boxes:")
+    print(
+        f"{'sequence':<20} {'boxes':>5} "
+        + " ".join(f"{outcome:>10}" for outcome in BOX_OUTCOMES[1:])
+        + f" {'tracks':>7} {'own model':>9}"
+    )
+    for name, row in rows.items():
+        if row["evaluable"]:
+            print(
+                f"{name:<20} {row['evaluable']:>5} "
+                + " ".join(f"{row[f'missed_{outcome}']:>10}" for outcome in BOX_OUTCOMES[1:])
+                + f" {row['boxes_with_tracks']:>7} {row['boxes_with_own_model']:>9}"
+            )
     write_json(args.json, rows)
     return 0
