@@ -43,7 +43,7 @@ from evseg_torch.pipeline import CascadedSegmenter
 ROOT = Path(__file__).resolve().parents[1]
 PROBE = ROOT.parent / "shared" / "data" / "synthetic_probe"
 REAL = ROOT.parent / "shared" / "data" / "real"
-EED_SEQUENCES = ("what_is_background", "occlusions")
+EED_SEQUENCES = ("what_is_background", "occlusions", "multiple_objects_2objs_first_half")
 # Column title and key of the scene sets' summaries and of EED's detection rates.
 SCENE_COLUMNS = {"accuracy": "accuracy", "IoU": "iou", "detect": "detection", "|count|": "abs_count_error"}
 # Why objects were missed (evseg_torch.evaluation.metrics.object_outcomes).
