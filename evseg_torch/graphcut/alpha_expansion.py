@@ -6,7 +6,9 @@ The energy of a labelling ``f`` of ``N`` nodes with labels ``0 .. L-1`` is
 
     E(f) = \\sum_i U_{i, f_i} + \\lambda \\sum_{(i, j)} w_{ij} [f_i \\ne f_j] + \\sum_{l \\text{ used}} h_l
 
-(data + Potts + MDL label costs, EMSGC's and Progressive-X's PEARL energy). With ``outlier_cost`` set, an
+(data + Potts + MDL label costs, EMSGC's and Progressive-X's PEARL energy), plus, where labels are
+grouped, a cost :math:`h_g` paid once for every group :math:`g` with a label in use (Delong et al.'s
+label *subset* costs: level two's labels of one motion share its cost). With ``outlier_cost`` set, an
 extra label, reported as ``-1``, costs ``outlier_cost`` at every node and ``outlier_label_cost`` once if
 used.
 
@@ -22,10 +24,12 @@ that may move is split, as in Kolmogorov and Zabih (2004), into unary terms and 
 Label costs follow Delong et al. (IJCV 2012): the cut pays ``h_l`` for a label ``l != α`` in use exactly
 when some node of ``l`` keeps it, through auxiliary nodes (a root paying ``h_l`` on the source side, fed
 by every node of ``l`` through edges of capacity ``h_l``; see :func:`_add_label_costs` for the two-level
-version used here). α's own cost ``h_α [any node takes α]`` is not submodular when α is unused; it is
+version used here); a group's cost gets the same gadget, fed by every node of the group's labels, when
+α is not in the group. α's own cost ``h_α [any node takes α]`` is not submodular when α is unused; it is
 handled by comparing energies, which is *exact* for the move: if the cut's best labelling moves some
 node to α it is also the best labelling among those that use α, and the other candidate, moving
-nothing, is the current labelling. So every move is the optimal expansion move.
+nothing, is the current labelling. The same holds for the cost of α's group, a constant of every
+labelling that uses α. So every move is the optimal expansion move.
 
 A label that no optimal move can drop gets no gadget (:func:`_retained_labels`): dropping ``l`` means
 moving all of its nodes to α, which costs at least their data-cost rise minus the weight of ``l``'s
@@ -121,6 +125,26 @@ def _add_label_costs(graph, label_cost, member_label, members, n_groups) -> None
     )
 
 
+def _gadget(cost: np.ndarray, charged: np.ndarray, owner: np.ndarray):
+    """The arguments of :func:`_add_label_costs` for the charged ones of some costs (labels' or groups').
+
+    Args:
+        cost: each owner's cost :math:`(O,)`.
+        charged: which owners the cut charges, bool :math:`(O,)`.
+        owner: each node's owner in graph order, -1 for none, :math:`(N,)`.
+
+    Returns:
+        ``(cost, member_owner, members, n_groups)``: the members' owners, the members (graph ids, sorted)
+        and each owner's number of group nodes (0 when not charged).
+    """
+    if not charged.any():
+        return cost, owner[:0], owner[:0], np.zeros(len(cost), dtype=np.intp)
+    members = np.flatnonzero((owner >= 0) & charged[np.maximum(owner, 0)])
+    member_owner = owner[members]
+    n_groups = -(-np.bincount(member_owner, minlength=len(cost)) // _GROUP_SIZE)
+    return cost, member_owner, members, n_groups
+
+
 def _move_terms(problem: LabellingProblem, labels: np.ndarray, alpha: int):
     """The arrays of one α-move: the NumPy form of :func:`~evseg_torch.kernels.expansion.move_terms`
     (the same returns, bit for bit)."""
@@ -159,21 +183,25 @@ def _move_terms(problem: LabellingProblem, labels: np.ndarray, alpha: int):
 def _retained_labels(problem: LabellingProblem, slack: np.ndarray) -> np.ndarray:
     """The labels that every optimal α-move keeps in use; their label costs are constants of the move.
 
-    A move drops a label ``l != α`` only by moving all of ``l``'s nodes to α. Against the same move with
-    those nodes kept, that raises the data cost by the sum of ``U[:, α] - U[:, l]`` over them, lowers the
-    Potts energy by at most the weight of ``l``'s boundary (edges inside ``l`` cost nothing either way,
-    edges leaving it at most their weight) and saves ``h_l``. When the rise exceeds the other two, no
-    optimal move drops ``l``.
+        A move drops a label ``l != α`` only by moving all of ``l``'s nodes to α. Against the same move with
+        those nodes kept, that raises the data cost by the sum of ``U[:, α] - U[:, l]`` over them, lowers the
+        Potts energy by at most the weight of ``l``'s boundary (edges inside ``l`` cost nothing either way,
+        edges leaving it at most their weight) and saves ``h_l``, and its group's cost when it was the group's
+    last label in use. When the rise exceeds the other two, no
+        optimal move drops ``l``.
 
-    Args:
-        problem: the energy.
-        slack: per label, the data-cost rise of moving all its nodes to α minus the weight of its
-            boundary, :math:`(L,)` (from the move's terms).
+        Args:
+            problem: the energy.
+            slack: per label, the data-cost rise of moving all its nodes to α minus the weight of its
+                boundary, :math:`(L,)` (from the move's terms).
 
-    Returns:
-        bool :math:`(L,)`.
+        Returns:
+            bool :math:`(L,)`.
     """
-    return slack > problem.label_cost
+    group = problem.label_group
+    saved = problem.label_cost.copy()
+    saved[group >= 0] += problem.group_cost[group[group >= 0]]
+    return slack > saved
 
 
 def _expand(problem: LabellingProblem, labels: np.ndarray, alpha: int) -> np.ndarray:
@@ -196,19 +224,32 @@ def _expand(problem: LabellingProblem, labels: np.ndarray, alpha: int) -> np.nda
         terms = compiled(labels, alpha, problem.unary, *arrays)
     slack, counts, (pair_tail, pair_head, forward, backward), (movable, moving, to_alpha, to_keep) = terms
 
-    charged = (counts > 0) & (problem.label_cost > 0) & ~_retained_labels(problem, slack)
+    retained = _retained_labels(problem, slack)
+    charged = (counts > 0) & (problem.label_cost > 0) & ~retained
     charged[alpha] = False
-    members = np.flatnonzero(charged[labels[layout.graph_order]])
-    n_groups = -(-counts // _GROUP_SIZE) * charged
-    n_charged = int(np.count_nonzero(charged))
-    n_aux = n_charged + int(n_groups.sum())
+    group = problem.label_group
+    node_group = group[labels]
+    # A group is charged as a label is: in use, not α's, without a label that every optimal move keeps.
+    in_use = (counts > 0) & (group >= 0)
+    group_used = np.bincount(group[in_use], minlength=len(problem.group_cost)) > 0
+    group_kept = np.bincount(group[in_use & retained], minlength=len(problem.group_cost)) > 0
+    group_charged = group_used & (problem.group_cost > 0) & ~group_kept
+    if group[alpha] >= 0:
+        group_charged[group[alpha]] = False
+    gadgets = [
+        _gadget(problem.label_cost, charged, labels[layout.graph_order]),
+        _gadget(problem.group_cost, group_charged, node_group[layout.graph_order]),
+    ]
+    n_aux = sum(int(np.count_nonzero(n_groups)) + int(n_groups.sum()) for *_, n_groups in gadgets)
+    n_arcs = sum(len(members) for _, _, members, _ in gadgets)
 
-    graph = maxflow.Graph[float](len(labels) + n_aux, len(pair_tail) + len(members) + n_aux)
+    graph = maxflow.Graph[float](len(labels) + n_aux, len(pair_tail) + n_arcs + n_aux)
     graph.add_nodes(len(labels))
     graph.add_edges(pair_tail, pair_head, forward, backward)
     graph.add_grid_tedges(moving, to_alpha, to_keep)
-    if n_charged:
-        _add_label_costs(graph, problem.label_cost, labels[layout.graph_order[members]], members, n_groups)
+    for cost, owner, members, n_groups in gadgets:
+        if len(members):
+            _add_label_costs(graph, cost, owner, members, n_groups)
     graph.maxflow()
 
     expanded = labels.copy()
@@ -227,6 +268,8 @@ def alpha_expansion(
     max_cycles=2,
     outlier_cost=None,
     outlier_label_cost=0.0,
+    label_groups=None,
+    group_cost=None,
     rng=None,
 ) -> ExpansionResult:
     """Minimise data + Potts + label-cost energy by α-expansion (Boykov et al. 2001, Delong et al. 2012).
@@ -250,6 +293,10 @@ def alpha_expansion(
         outlier_cost: constant data cost of an extra outlier label, returned as ``-1``; ``None``
             for no outlier label.
         outlier_label_cost: label cost of the outlier label.
+        label_groups: each label's group, integer :math:`(L,)` in ``[-1, G)`` (-1: in none), with
+            ``group_cost``; ``None`` for no groups.
+        group_cost: non-negative :math:`(G,)`, paid once for every group with a label in use (label
+            subset costs).
         rng: ``None`` for the fixed label order, else a :class:`numpy.random.Generator` or seed for a
             random order in every cycle.
 
@@ -266,7 +313,15 @@ def alpha_expansion(
         array([0, 0, 0])
     """
     problem = prepare_problem(
-        unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost
+        unary,
+        edges,
+        edge_weights,
+        smoothness,
+        label_cost,
+        outlier_cost,
+        outlier_label_cost,
+        label_groups=label_groups,
+        group_cost=group_cost,
     )
     max_cycles = check_integer(max_cycles, "max_cycles", error=GraphCutError)
     if init_labels is None:

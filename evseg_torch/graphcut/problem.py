@@ -1,10 +1,11 @@
 """The labelling problem of the graph cuts: its arguments checked, its graph's layout, and its energy.
 
 :func:`prepare_problem` validates an energy (unary costs, a Potts edge set, its smoothness weight, label
-costs, an optional outlier label) into a float64 :class:`LabellingProblem`; :func:`potts_graph` validates
-an edge set once and numbers its graph's nodes for the maximum flow (:class:`GraphLayout`), so a graph
-labelled several times pays that once; :func:`labeling_energy` is the energy of a labelling, against
-which :func:`~evseg_torch.graphcut.alpha_expansion.alpha_expansion` accepts each move.
+costs, group costs paid once per group of labels in use, an optional outlier label) into a float64
+:class:`LabellingProblem`; :func:`potts_graph` validates an edge set once and numbers its graph's nodes
+for the maximum flow (:class:`GraphLayout`), so a graph labelled several times pays that once;
+:func:`labeling_energy` is the energy of a labelling, against which
+:func:`~evseg_torch.graphcut.alpha_expansion.alpha_expansion` accepts each move.
 """
 
 from __future__ import annotations
@@ -84,6 +85,8 @@ class LabellingProblem:
     layout: GraphLayout  # weights already multiplied by the smoothness
     label_cost: np.ndarray  # (Lp,)
     has_outlier: bool
+    label_group: np.ndarray  # (Lp,) each label's group, -1 for none (the outlier label's is -1)
+    group_cost: np.ndarray  # (G,) paid once for every group with a label in use
 
     @property
     def n_labels(self) -> int:
@@ -143,7 +146,16 @@ def _edge_arrays(edges, edge_weights, n_nodes: int) -> tuple[np.ndarray, np.ndar
 
 
 def prepare_problem(
-    unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost, reorder=True
+    unary,
+    edges,
+    edge_weights,
+    smoothness,
+    label_cost,
+    outlier_cost,
+    outlier_label_cost,
+    reorder=True,
+    label_groups=None,
+    group_cost=None,
 ) -> LabellingProblem:
     data = _real_array(unary, "unary")
     if data.ndim != 2 or data.shape[1] == 0:
@@ -172,12 +184,36 @@ def prepare_problem(
     if (costs < 0).any():
         raise GraphCutError("label_cost must be non-negative")
 
+    label_group, group_costs = _group_arrays(label_groups, group_cost, n_labels)
     has_outlier = outlier_cost is not None
     if has_outlier:
         outlier = _finite_scalar(outlier_cost, "outlier_cost", nonnegative=False)
         data = np.concatenate([data, np.full((n_nodes, 1), outlier)], axis=1)
         costs = np.append(costs, _finite_scalar(outlier_label_cost, "outlier_label_cost", nonnegative=True))
-    return LabellingProblem(data, layout, costs, has_outlier)
+        label_group = np.append(label_group, -1)
+    return LabellingProblem(data, layout, costs, has_outlier, label_group, group_costs)
+
+
+def _group_arrays(label_groups, group_cost, n_labels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Validated ``(label_group, group_cost)``: every label in no group when both are ``None``."""
+    if (label_groups is None) != (group_cost is None):
+        raise GraphCutError("label_groups and group_cost go together: give both or neither")
+    if label_groups is None:
+        return np.full(n_labels, -1, dtype=np.intp), np.zeros(0)
+    groups = _integer_array(label_groups, "label_groups")
+    costs = _real_array(group_cost, "group_cost")
+    if groups.shape != (n_labels,):
+        raise ShapeError(f"label_groups must have shape ({n_labels},), got {groups.shape}")
+    if costs.ndim != 1:
+        raise ShapeError(f"group_cost must have shape (G,), got {costs.shape}")
+    if groups.size and (groups.min() < -1 or groups.max() >= len(costs)):
+        raise GraphCutError(
+            f"label_groups must lie in [-1, {len(costs)}) for {len(costs)} group costs, got values in "
+            f"[{groups.min()}, {groups.max()}]"
+        )
+    if (costs < 0).any():
+        raise GraphCutError("group_cost must be non-negative")
+    return groups, costs
 
 
 def internal_labels(labels, problem: LabellingProblem, name: str) -> np.ndarray:
@@ -201,7 +237,14 @@ def problem_energy(problem: LabellingProblem, labels: np.ndarray) -> float:
     layout = problem.layout
     potts = layout.weight[labels[layout.tail] != labels[layout.head]].sum()
     used = np.bincount(labels, minlength=problem.n_labels) > 0
-    return float(unary) + float(potts) + float(problem.label_cost[used].sum())
+    groups_used = np.zeros(len(problem.group_cost), dtype=bool)
+    groups_used[problem.label_group[used & (problem.label_group >= 0)]] = True
+    return (
+        float(unary)
+        + float(potts)
+        + float(problem.label_cost[used].sum())
+        + float(problem.group_cost[groups_used].sum())
+    )
 
 
 def labeling_energy(
@@ -214,8 +257,10 @@ def labeling_energy(
     label_cost=0.0,
     outlier_cost=None,
     outlier_label_cost=0.0,
+    label_groups=None,
+    group_cost=None,
 ) -> float:
-    """Energy of a labelling: data + Potts + label costs (see the module docstring).
+    """Energy of a labelling: data + Potts + label costs + group costs (see the module docstring).
 
     Args:
         labels: integer :math:`(N,)` labels in ``[0, L)``, or ``-1`` (outlier) if ``outlier_cost`` is set.
@@ -227,6 +272,9 @@ def labeling_energy(
         label_cost: non-negative scalar or :math:`(L,)`, paid once for every label in use.
         outlier_cost: constant data cost of the outlier label at every node; ``None`` for no outlier label.
         outlier_label_cost: label cost of the outlier label.
+        label_groups: each label's group, integer :math:`(L,)` in ``[-1, G)`` (-1: in none), with
+            ``group_cost``; ``None`` for no groups.
+        group_cost: non-negative :math:`(G,)`, paid once for every group with a label in use.
 
     Returns:
         The energy as a Python float.
@@ -236,7 +284,16 @@ def labeling_energy(
         GraphCutError: negative weights or costs, NaN or inf, labels or node indices out of range.
     """
     problem = prepare_problem(
-        unary, edges, edge_weights, smoothness, label_cost, outlier_cost, outlier_label_cost, reorder=False
+        unary,
+        edges,
+        edge_weights,
+        smoothness,
+        label_cost,
+        outlier_cost,
+        outlier_label_cost,
+        reorder=False,
+        label_groups=label_groups,
+        group_cost=group_cost,
     )
     return problem_energy(problem, internal_labels(labels, problem, "labels"))
 

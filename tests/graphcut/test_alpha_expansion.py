@@ -393,6 +393,80 @@ class TestAlphaExpansion:
         assert integer.energy == pytest.approx(2.0)
 
 
+class TestGroupCosts:
+    """Label subset costs: a group pays once when any of its labels is in use."""
+
+    @staticmethod
+    def _energies(moves, unary, edges, weights, smoothness, label_cost, groups, group_cost):
+        used = np.stack([(moves == label).any(axis=1) for label in range(unary.shape[1])], axis=1)
+        group_used = np.stack([used[:, groups == g].any(axis=1) for g in range(len(group_cost))], axis=1)
+        return (
+            _all_energies(moves, unary, edges, weights, smoothness, label_cost, None, 0.0)
+            + group_used @ group_cost
+        )
+
+    @pytest.mark.parametrize("group_size", [32, 2])
+    @pytest.mark.parametrize("seed", range(12))
+    def test_each_move_is_the_optimal_expansion(self, seed, group_size, monkeypatch):
+        monkeypatch.setattr(alpha_expansion_module, "_GROUP_SIZE", group_size)
+        rng = np.random.default_rng(seed)
+        n_nodes, n_labels = 7, 4
+        unary, edges, weights = _random_problem(rng, n_nodes, n_labels, 12)
+        label_cost = rng.uniform(0.0, 2.0, size=n_labels)
+        groups = np.array([-1, 0, 0, 1]) if seed % 2 else np.array([0, 0, 0, -1])
+        group_cost = rng.uniform(0.0, 6.0, size=groups.max() + 1)
+        args = (unary, edges, weights, 1.3, label_cost, groups, group_cost)
+        problem = prepare_problem(*args[:5], None, 0.0, label_groups=groups, group_cost=group_cost)
+        start = rng.integers(0, n_labels, size=n_nodes)
+        for alpha, unused in itertools.product(range(n_labels), [False, True]):
+            labels = np.where(start == alpha, (alpha + 1) % n_labels, start) if unused else start
+            movable = np.flatnonzero(labels != alpha)
+            masks = np.array(list(itertools.product([False, True], repeat=len(movable))), dtype=bool)
+            moves = np.tile(labels, (len(masks), 1))
+            moves[:, movable] = np.where(masks, alpha, labels[movable])
+            best = self._energies(moves, *args).min()
+            candidate = _expand(problem, labels, alpha)
+            kept = min(self._energies(np.stack([candidate, labels]), *args))
+            assert kept == pytest.approx(best, abs=1e-9)
+
+    @pytest.mark.parametrize("seed", range(5))
+    def test_energy_is_the_labellings_and_never_rises(self, seed):
+        rng = np.random.default_rng(seed)
+        unary, edges, weights = _random_problem(rng, 30, 5, 60)
+        kwargs = dict(
+            smoothness=0.5,
+            label_cost=rng.uniform(0, 1, 5),
+            label_groups=np.array([-1, 0, 0, 0, 1]),
+            group_cost=np.array([4.0, 2.0]),
+        )
+        result = alpha_expansion(unary, edges, weights, max_cycles=5, **kwargs)
+        assert result.energy == pytest.approx(labeling_energy(result.labels, unary, edges, weights, **kwargs))
+        assert all(b <= a for a, b in zip(result.energy_history, result.energy_history[1:], strict=False))
+
+    def test_a_shared_cost_keeps_two_labels_of_a_group(self):
+        # Two blocks of nodes, each best in its own label by 6; the labels cost 7 each alone, 6 + 1 each
+        # in one group.
+        unary = np.array([[0.0, 3.0], [0.0, 3.0], [3.0, 0.0], [3.0, 0.0]])
+        edges = np.array([[0, 1], [2, 3]])
+        alone = alpha_expansion(unary, edges, label_cost=7.0, init_labels=[0, 0, 0, 0])
+        assert alone.labels.tolist() == [0, 0, 0, 0]  # the second label does not pay its 7
+        shared = alpha_expansion(
+            unary, edges, label_cost=1.0, label_groups=[0, 0], group_cost=[6.0], init_labels=[0, 0, 0, 0]
+        )
+        assert shared.labels.tolist() == [0, 0, 1, 1]
+
+    def test_no_groups_is_the_plain_energy(self):
+        rng = np.random.default_rng(3)
+        unary, edges, weights = _random_problem(rng, 40, 4, 80)
+        kwargs = dict(smoothness=0.4, label_cost=rng.uniform(0, 3, 4), max_cycles=4)
+        plain = alpha_expansion(unary, edges, weights, **kwargs)
+        ungrouped = alpha_expansion(
+            unary, edges, weights, label_groups=np.full(4, -1), group_cost=np.zeros(0), **kwargs
+        )
+        np.testing.assert_array_equal(plain.labels, ungrouped.labels)
+        assert plain.energy_history == ungrouped.energy_history
+
+
 class TestValidation:
     UNARY = np.zeros((3, 2))
     EDGES = np.array([[0, 1], [1, 2]])
@@ -433,6 +507,15 @@ class TestValidation:
             (dict(init_labels=[0.0, 1.0, 1.0]), GraphCutError, "init_labels must be an integer array"),
             (dict(max_cycles=-1), GraphCutError, "max_cycles must be an integer of at least 0"),
             (dict(max_cycles=1.5), GraphCutError, "max_cycles must be an integer of at least 0"),
+            (dict(label_groups=[0, 0]), GraphCutError, "label_groups and group_cost go together"),
+            (dict(label_groups=[0], group_cost=[1.0]), ShapeError, r"label_groups must have shape \(2,\)"),
+            (
+                dict(label_groups=[0, 1], group_cost=[1.0]),
+                GraphCutError,
+                r"label_groups must lie in \[-1, 1\)",
+            ),
+            (dict(label_groups=[0, 0], group_cost=[-1.0]), GraphCutError, "group_cost must be non-negative"),
+            (dict(label_groups=[0, 0], group_cost=[[1.0]]), ShapeError, "group_cost must have shape"),
         ],
     )
     def test_invalid_inputs(self, kwargs, error, match):
