@@ -22,11 +22,8 @@ window to window:
 * **New ids**: a cluster left unmatched gets the next unused id; ids grow and are never reused, even
   after their object has vanished. Only the previous window is remembered: an object missed for one
   window comes back with a new id.
-* **Shared motion** (:func:`shared_motion_groups`): two clusters share a motion when their models move
-  the points of the box holding both clusters by less than ``tolerance_px`` pixels apart over the window
-  (the largest difference at the box's corners, where a linear velocity field's difference peaks); a
-  group is a connected set of such pairs, named by its lowest cluster index. A background that the
-  graph cut split in two is one group.
+* **Shared motion** (:func:`~evseg_torch.motion.shared.shared_motion_groups`): which clusters move
+  alike, as level two prices them; a background that the graph cut split in two is one group.
 
 The tracker's whole state is the previous window's :class:`TrackedClusters` (ids, centres, boxes,
 models, ``t_ref``) and the next unused id, i.e. what ``models.jsonl`` stores per window
@@ -41,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from evseg_torch.errors import ShapeError
+from evseg_torch.motion.shared import shared_motion_groups
 
 __all__ = [
     "BACKGROUND_COVER",
@@ -60,7 +58,6 @@ GATE_PX = 10.0  # px: least gate of a match
 # alone or a smaller gate.
 GATE_SIZE = 1.0  # of the larger box's longer side, added to the gate
 MOTION_WEIGHT = 2.0  # of the models' difference over the window, against the distance (both px)
-SHARED_MOTION_PX = 1.0  # px over the window: models closer than this share a motion
 _QUANTILES = (0.02, 0.5, 0.98)  # a box's low edges, a centre, a box's high edges
 
 
@@ -222,44 +219,6 @@ def _costs(previous, objects, now, candidates, duration, motion, gate_px, gate_s
 
     rows, cols = linear_sum_assignment(priced)
     return rows, cols, cost, gate
-
-
-def shared_motion_groups(
-    models, boxes, duration: float, motion, sensor_size, tolerance_px: float = SHARED_MOTION_PX
-) -> np.ndarray:
-    """Which clusters share a motion (module doc).
-
-    Args:
-        models: :math:`(K, P)`.
-        boxes: each cluster's compensated box ``[x, y, w, h]``, :math:`(K, 4)`; a NaN row (no events)
-            stands for the whole sensor.
-        duration: the window's time span, seconds.
-        motion: the models' :class:`~evseg_torch.motion.MotionModel`.
-        sensor_size: ``(H, W)``.
-        tolerance_px: largest difference of the two models' displacements over the window, px.
-
-    Returns:
-        int64 :math:`(K,)`: the lowest cluster index of each cluster's group (its own index when it
-        shares its motion with no other).
-    """
-    models = np.asarray(models, dtype=np.float64)
-    n_clusters = len(models)
-    height, width = sensor_size
-    boxes = np.where(np.isfinite(boxes), boxes, [0.0, 0.0, width - 1.0, height - 1.0])
-    low, high = boxes[:, :2], boxes[:, :2] + boxes[:, 2:]
-    close = np.eye(n_clusters, dtype=bool)
-    for a in range(n_clusters):
-        for b in range(a + 1, n_clusters):
-            (x0, y0), (x1, y1) = np.minimum(low[a], low[b]), np.maximum(high[a], high[b])
-            corners = np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]])
-            difference = motion.velocity(corners, models[a]) - motion.velocity(corners, models[b])
-            close[a, b] = close[b, a] = duration * np.linalg.norm(difference, axis=-1).max() < tolerance_px
-    from scipy.sparse.csgraph import connected_components  # on first use, as linear_sum_assignment
-
-    _, component = connected_components(close, directed=False)
-    lowest = np.full(n_clusters, n_clusters, dtype=np.int64)
-    np.minimum.at(lowest, component, np.arange(n_clusters))
-    return lowest[component]
 
 
 class ObjectTracker:

@@ -26,7 +26,6 @@ from evseg_torch.tracking import (
     describe_clusters,
     find_background,
     match_objects,
-    shared_motion_groups,
 )
 
 SIZE = (90, 120)
@@ -129,15 +128,6 @@ def test_a_tracker_fed_shuffled_clusters_follows_the_objects():
         first = first or by_object
         assert by_object == first and by_object[0] == 0
     assert sorted(first) == [0, 1, 2, 3] and tracker.next_id == 4
-
-
-def test_shared_motion_groups_clusters_moving_alike():
-    boxes = np.array([WHOLE, [10, 10, 10, 10], [60, 50, 10, 10], [90, 20, 10, 10]])
-    # Clusters 0 and 2 differ by 50 px/s = 0.5 px over 10 ms; cluster 3 by 200 px/s = 2 px.
-    models = np.array([[100, 0], [0, 300], [150, 0], [300, 0]], dtype=float)
-    groups = shared_motion_groups(models, boxes, 0.01, MOTION, SIZE)
-    assert groups.tolist() == [0, 1, 0, 3]
-    assert shared_motion_groups(models, boxes, 0.01, MOTION, SIZE, tolerance_px=2.5).tolist() == [0, 1, 0, 0]
 
 
 def test_describe_clusters_and_records_round_trip():
