@@ -249,6 +249,10 @@ class LevelTwoConfig(Section):
         object_radius: pixels by which compensated events reach out when grouped into objects.
         object_support_radius: pixels by which a label's support extends beyond its grouped events.
         object_splits: how many times per window settled clusters are split into their objects.
+        object_label_cost: with ``objects``, labels that share a motion
+            (:func:`~evseg_torch.motion.shared.shared_motion_groups`) pay the label cost once for the
+            motion and this fraction of it for each of its objects (label subset costs, beyond the paper;
+            1: every label pays the full cost, as in EMSGC). The background is priced alone.
         soft_temperature: temperature of the per-event soft assignments, a softmax of the negative data
             cost (units of the cost, 0-255; a cost difference of one temperature between two clusters
             is a factor ``e`` between their probabilities; beyond the paper); 20 is calibrated on
@@ -297,6 +301,7 @@ class LevelTwoConfig(Section):
     object_radius: int = setting(5, at_least=0)
     object_support_radius: int = setting(6, at_least=0)
     object_splits: int = setting(2, at_least=0)
+    object_label_cost: float = setting(0.25, at_least=0, at_most=1)
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,7 @@ import torch
 
 from evseg_torch.config import LevelTwoConfig
 from evseg_torch.level_two.descent.state import WindowState
+from evseg_torch.level_two.energy.label_cost import motion_label_costs
 from evseg_torch.level_two.image.warp import warp_events
 from evseg_torch.motion import MotionModel
 
@@ -61,6 +62,8 @@ __all__ = [
 # Fewest events of the rarer polarity, as a fraction of a group's events, for the group to be an object
 # on its own rather than one edge strip of a textureless object.
 _MIN_POLARITY = 0.3
+# A label's box, for its price: these percentiles of its events' x and y (a few strays do not stretch it).
+_BOX_PERCENTILES = (2, 98)
 # A background's events, each pixel dilated by _SPREAD_RADIUS, cover at least this fraction of the sensor.
 _BACKGROUND_SPREAD, _SPREAD_RADIUS = 0.35, 5
 
@@ -360,3 +363,35 @@ class ObjectPhase:
         each new cluster's parent; ``None`` where no cluster holds separate objects."""
         labels, parent = split_objects(state.labels, self.groups(state, self.compensated(state)))
         return None if len(parent) == state.params.shape[0] else (labels, parent)
+
+    def label_costs(self, state: WindowState, cost: float) -> dict:
+        """The label costs of the window's next labelling, as keyword arguments of
+        :func:`~evseg_torch.graphcut.alpha_expansion.alpha_expansion`: ``cost`` per label, or with
+        ``object_label_cost`` below 1 a motion priced once for its objects
+        (:func:`~evseg_torch.level_two.energy.label_cost.motion_label_costs`; the background is the
+        labelled cluster of most events). A label's box spans the 2nd to 98th percentiles of its
+        cluster's events, a proposal's of its region's; a label without events has the whole view."""
+        if not self.config.objects or self.config.object_label_cost >= 1:
+            return {"label_cost": cost}
+        n_models = state.params.shape[0]
+        n_labelled = n_models - len(state.regions)
+        members = [np.flatnonzero(state.labels == k) for k in range(n_labelled)] + list(state.regions)
+        height, width = self.sensor_size
+        boxes = np.tile([0.0, 0.0, width - 1.0, height - 1.0], (n_models, 1))
+        for k, events in enumerate(members):
+            if len(events):
+                low, high = np.percentile(state.xy[events], _BOX_PERCENTILES, axis=0)
+                boxes[k] = [*low, *(high - low)]
+        background = int(np.argmax([len(events) for events in members[:n_labelled]]))
+        t = state.events.t
+        label_cost, label_groups, group_cost = motion_label_costs(
+            state.params.detach().cpu().numpy().astype(np.float64),
+            boxes,
+            background,
+            cost,
+            self.config.object_label_cost,
+            duration=float(t.max() - t.min()) if len(t) else 0.0,
+            motion=self.model,
+            sensor_size=self.sensor_size,
+        )
+        return {"label_cost": label_cost, "label_groups": label_groups, "group_cost": group_cost}

@@ -410,7 +410,9 @@ class GraphCutContrastSegmenter(nn.Module):
             state.node_cost,
             state.graph,
             smoothness=self.config.lambda_smooth,
-            label_cost=label_cost(len(state.events), self.config.lambda_label, self.config.label_cost_events),
+            **self.object_phase.label_costs(
+                state, label_cost(len(state.events), self.config.lambda_label, self.config.label_cost_events)
+            ),
             init_labels=state.node_labels,
             max_cycles=self.config.n_iter_labeling,
         )
