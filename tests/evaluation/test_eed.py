@@ -18,6 +18,7 @@ from evseg_torch.evaluation.eed import (
     evaluate_sequence,
     level_one_support,
     load_eed_sequence,
+    separate_in_stream,
 )
 from evseg_torch.events import EVENT_DTYPE
 
@@ -298,3 +299,34 @@ class TestLoadSequence:
         (tmp_path / "boundingbox.txt").write_text("1.0, x= 1, y= 2, w= 3, h= 4\n")
         with pytest.raises(ReaderError, match="no events file"):
             load_eed_sequence(tmp_path)
+
+
+class TestSeparateInStream:
+    """Two objects boxed at one time are apart when each box's events near that time are their own
+    non-background cluster's."""
+
+    BOXES = np.array([[0.0, 0.0, 9.0, 9.0], [20.0, 0.0, 9.0, 9.0], [0.0, 0.0, 9.0, 9.0]])
+    TIMES = np.array([0.005, 0.005, 0.025])  # the last time has one box: never in view
+
+    @staticmethod
+    def _window(t0_us, object_ids, left, right):
+        events = np.zeros(40, dtype=EVENT_DTYPE)
+        events["t"] = t0_us + 500 * np.arange(40)
+        events["x"] = np.where(np.arange(40) % 2, 25, 5)
+        events["y"] = 5
+        labels = np.where(np.arange(40) % 2, right, left)
+        return SimpleNamespace(
+            events=events, labels=labels, n_clusters=3, object_ids=np.asarray(object_ids, dtype=np.int64)
+        )
+
+    def test_apart_merged_and_background(self):
+        apart = self._window(0, [0, 4, 7], 1, 2)
+        assert separate_in_stream([apart], self.TIMES, self.BOXES) == (1, 1)
+        merged = self._window(0, [0, 4, 7], 1, 1)
+        assert separate_in_stream([merged], self.TIMES, self.BOXES) == (1, 0)
+        background = self._window(0, [0, 4, 7], 0, 2)
+        assert separate_in_stream([background], self.TIMES, self.BOXES) == (1, 0)
+
+    def test_a_time_no_window_holds_is_not_in_view(self):
+        later = self._window(30_000, [0, 4, 7], 1, 2)
+        assert separate_in_stream([later], self.TIMES, self.BOXES) == (0, 0)
