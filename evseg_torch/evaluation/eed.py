@@ -37,10 +37,11 @@ level one's clusters of tracks has most of its tracks there (a model of the box'
 same time are scored on one segmentation of their common window.
 
 **Objects apart in a stream** (:func:`separate_in_stream`, beyond the protocol): in a stream of windows
-(``evseg segment``), a box time with two or more GT boxes is *in view* when a segmented window holds it;
-there each box's owner is the cluster holding most of the window's events that fire inside the box within
-``near_ms`` of its time (raw positions: no model is trusted to place them), and the objects are *apart*
-when every box has an owner, none of them the background (object id 0) and no two the same.
+(``evseg segment``), a box time with two or more GT boxes is *in view* when a segmented window holds it
+and each box holds at least ``min_events`` (1) of the window's events within ``near_ms`` of its time (an
+object that does not fire is not in an event camera's view); there each box's owner is the cluster holding
+most of those events (raw positions: no model is trusted to place them), and the objects are *apart* when
+no owner is the background (object id 0) and no two are the same.
 """
 
 from __future__ import annotations
@@ -369,7 +370,9 @@ def detection_rate(results: list[BoxResult]) -> dict[str, float]:
     }
 
 
-def separate_in_stream(segmentations, box_times_s: np.ndarray, boxes: np.ndarray, near_ms: float = 3.0):
+def separate_in_stream(
+    segmentations, box_times_s: np.ndarray, boxes: np.ndarray, near_ms: float = 3.0, min_events: int = 1
+):
     """How many box times with several GT boxes a stream holds, and at how many its objects are apart
     (module docstring).
 
@@ -379,6 +382,7 @@ def separate_in_stream(segmentations, box_times_s: np.ndarray, boxes: np.ndarray
         box_times_s: GT box times in seconds, :math:`(M,)`.
         boxes: GT boxes ``[x, y, w, h]``, :math:`(M, 4)`.
         near_ms: events within this many milliseconds of a box time are its events.
+        min_events: fewest events of each box for its time to be in view.
 
     Returns:
         ``(in_view, apart)``.
@@ -394,13 +398,15 @@ def separate_in_stream(segmentations, box_times_s: np.ndarray, boxes: np.ndarray
         )
         if len(group) < 2 or window is None:
             continue
-        in_view += 1
         near = np.abs(window.events["t"] - centre) <= near_ms * 1e3
         xy = np.stack([window.events["x"], window.events["y"]], axis=1).astype(np.float64)
-        owners = []
-        for index in group:
-            inside = near & _inside(xy, boxes[index]) & (window.labels >= 0)
-            counts = np.bincount(window.labels[inside], minlength=window.n_clusters)
-            owners.append(int(window.object_ids[counts.argmax()]) if inside.any() else 0)
+        inside = [near & _inside(xy, boxes[index]) & (window.labels >= 0) for index in group]
+        if min(np.count_nonzero(events) for events in inside) < min_events:
+            continue
+        in_view += 1
+        owners = [
+            int(window.object_ids[np.bincount(window.labels[events], minlength=window.n_clusters).argmax()])
+            for events in inside
+        ]
         apart += int(0 not in owners and len(set(owners)) == len(owners))
     return in_view, apart

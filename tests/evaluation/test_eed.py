@@ -309,12 +309,12 @@ class TestSeparateInStream:
     TIMES = np.array([0.005, 0.005, 0.025])  # the last time has one box: never in view
 
     @staticmethod
-    def _window(t0_us, object_ids, left, right):
-        events = np.zeros(40, dtype=EVENT_DTYPE)
-        events["t"] = t0_us + 500 * np.arange(40)
-        events["x"] = np.where(np.arange(40) % 2, 25, 5)
+    def _window(t0_us, object_ids, left, right, n=80):
+        events = np.zeros(n, dtype=EVENT_DTYPE)
+        events["t"] = t0_us + 100 * np.arange(n)  # all within 3 ms of 5 ms from the 20th on
+        events["x"] = np.where(np.arange(n) % 2, 25, 5)
         events["y"] = 5
-        labels = np.where(np.arange(40) % 2, right, left)
+        labels = np.where(np.arange(n) % 2, right, left)
         return SimpleNamespace(
             events=events, labels=labels, n_clusters=3, object_ids=np.asarray(object_ids, dtype=np.int64)
         )
@@ -326,6 +326,11 @@ class TestSeparateInStream:
         assert separate_in_stream([merged], self.TIMES, self.BOXES) == (1, 0)
         background = self._window(0, [0, 4, 7], 0, 2)
         assert separate_in_stream([background], self.TIMES, self.BOXES) == (1, 0)
+
+    def test_a_box_that_hardly_fires_is_not_in_view(self):
+        window = self._window(0, [0, 4, 7], 1, 2)  # 30 events in each box within 3 ms of 5 ms
+        assert separate_in_stream([window], self.TIMES, self.BOXES, min_events=30) == (1, 1)
+        assert separate_in_stream([window], self.TIMES, self.BOXES, min_events=31) == (0, 0)
 
     def test_a_time_no_window_holds_is_not_in_view(self):
         later = self._window(30_000, [0, 4, 7], 1, 2)

@@ -28,16 +28,19 @@ PROBE_FLOORS = {"accuracy": 0.9, "iou": 0.77, "detection": 0.82, "abs_count_erro
 # Measured before the two pools on seeds 0-19 of the 'hard' family, pipeline seeds 0-8: accuracy 0.935,
 # IMO IoU 0.644, detection 0.715 (single seeds 0.922-0.940, 0.613-0.666, 0.658-0.767).
 FAMILY_FLOORS = {"accuracy": 0.9, "iou": 0.6, "detection": 0.63}
-# EED (the shipped eed.yaml, seed 0, boxes at the box time): one box under each reading measured in v0.8
-# (nested: 13/14 what_is_background, 6/13 occlusions, 3/14 multiple_objects; I/pred the same but 1/14 on
-# multiple_objects), equal on the AMD EPYC and the Intel Xeon.
+# EED (the shipped eed.yaml, seed 0, boxes at the box time): one box under each reading measured
+# (nested: 13/14 what_is_background, 6/13 occlusions, 2/14 multiple_objects; I/pred the same but 7/14 on
+# multiple_objects, where 3 seeds give 7, 7 and 7 boxes; on the AMD EPYC), two under I/pred there.
 EED_FLOORS = {
     "what_is_background": {
         "detection_rate_nested": 100 * 12 / 14,
         "detection_rate_over_predicted": 100 * 12 / 14,
     },
     "occlusions": {"detection_rate_nested": 100 * 5 / 13, "detection_rate_over_predicted": 100 * 5 / 13},
-    "multiple_objects_2objs_first_half": {"detection_rate_nested": 100 * 2 / 14},
+    "multiple_objects_2objs_first_half": {
+        "detection_rate_nested": 100 * 1 / 14,
+        "detection_rate_over_predicted": 100 * 5 / 14,
+    },
 }
 
 
