@@ -83,7 +83,7 @@ class Segmentation:
             :meth:`~CascadedSegmenter.segment_batch`) is numbered as a stream's first: the background 0,
             the other clusters from 1 in cluster order.
         shared_motion: which clusters share a motion, int64 :math:`(K,)`: the lowest index of the
-            clusters whose models move the points of their boxes less than 1 px apart over the window
+            clusters whose models move the points of their boxes less than 2 px apart over the window
             (its own index when none does; :func:`~evseg_torch.motion.shared.shared_motion_groups`).
     """
 

@@ -183,20 +183,19 @@ def _move_terms(problem: LabellingProblem, labels: np.ndarray, alpha: int):
 def _retained_labels(problem: LabellingProblem, slack: np.ndarray) -> np.ndarray:
     """The labels that every optimal α-move keeps in use; their label costs are constants of the move.
 
-        A move drops a label ``l != α`` only by moving all of ``l``'s nodes to α. Against the same move with
-        those nodes kept, that raises the data cost by the sum of ``U[:, α] - U[:, l]`` over them, lowers the
-        Potts energy by at most the weight of ``l``'s boundary (edges inside ``l`` cost nothing either way,
-        edges leaving it at most their weight) and saves ``h_l``, and its group's cost when it was the group's
-    last label in use. When the rise exceeds the other two, no
-        optimal move drops ``l``.
+    A move drops a label ``l != α`` only by moving all of ``l``'s nodes to α. Against the same move with
+    those nodes kept, that raises the data cost by the sum of ``U[:, α] - U[:, l]`` over them, lowers the
+    Potts energy by at most the weight of ``l``'s boundary (edges inside ``l`` cost nothing either way,
+    edges leaving it at most their weight) and saves ``h_l``, and its group's cost if ``l`` was the
+    group's last label in use. When the rise exceeds the other two, no optimal move drops ``l``.
 
-        Args:
-            problem: the energy.
-            slack: per label, the data-cost rise of moving all its nodes to α minus the weight of its
-                boundary, :math:`(L,)` (from the move's terms).
+    Args:
+        problem: the energy.
+        slack: per label, the data-cost rise of moving all its nodes to α minus the weight of its
+            boundary, :math:`(L,)` (from the move's terms).
 
-        Returns:
-            bool :math:`(L,)`.
+    Returns:
+        bool :math:`(L,)`.
     """
     group = problem.label_group
     saved = problem.label_cost.copy()
@@ -227,19 +226,17 @@ def _expand(problem: LabellingProblem, labels: np.ndarray, alpha: int) -> np.nda
     retained = _retained_labels(problem, slack)
     charged = (counts > 0) & (problem.label_cost > 0) & ~retained
     charged[alpha] = False
-    group = problem.label_group
-    node_group = group[labels]
-    # A group is charged as a label is: in use, not α's, without a label that every optimal move keeps.
-    in_use = (counts > 0) & (group >= 0)
-    group_used = np.bincount(group[in_use], minlength=len(problem.group_cost)) > 0
-    group_kept = np.bincount(group[in_use & retained], minlength=len(problem.group_cost)) > 0
-    group_charged = group_used & (problem.group_cost > 0) & ~group_kept
-    if group[alpha] >= 0:
-        group_charged[group[alpha]] = False
-    gadgets = [
-        _gadget(problem.label_cost, charged, labels[layout.graph_order]),
-        _gadget(problem.group_cost, group_charged, node_group[layout.graph_order]),
-    ]
+    gadgets = [_gadget(problem.label_cost, charged, labels[layout.graph_order])]
+    if len(problem.group_cost):
+        # A group is charged as a label is: in use, not α's, without a label every optimal move keeps.
+        group = problem.label_group
+        in_use = (counts > 0) & (group >= 0)
+        group_used = np.bincount(group[in_use], minlength=len(problem.group_cost)) > 0
+        group_kept = np.bincount(group[in_use & retained], minlength=len(problem.group_cost)) > 0
+        group_charged = group_used & (problem.group_cost > 0) & ~group_kept
+        if group[alpha] >= 0:
+            group_charged[group[alpha]] = False
+        gadgets.append(_gadget(problem.group_cost, group_charged, group[labels[layout.graph_order]]))
     n_aux = sum(int(np.count_nonzero(n_groups)) + int(n_groups.sum()) for *_, n_groups in gadgets)
     n_arcs = sum(len(members) for _, _, members, _ in gadgets)
 

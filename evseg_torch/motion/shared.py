@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse.csgraph import connected_components
 
-__all__ = ["SHARED_MOTION_PX", "shared_motion_groups"]
+__all__ = ["SHARED_MOTION_PX", "motion_groups", "moving_alike", "shared_motion_groups"]
 
 SHARED_MOTION_PX = 2.0  # px over the window: models closer than this share a motion
 
@@ -39,6 +39,13 @@ def shared_motion_groups(
         int64 :math:`(K,)`: the lowest cluster index of each cluster's group (its own index when it
         shares its motion with no other).
     """
+    return motion_groups(moving_alike(models, boxes, duration, motion, sensor_size, tolerance_px))
+
+
+def moving_alike(
+    models, boxes, duration: float, motion, sensor_size, tolerance_px: float = SHARED_MOTION_PX
+) -> np.ndarray:
+    """Which pairs of clusters move alike, bool :math:`(K, K)` (arguments of :func:`shared_motion_groups`)."""
     models = np.asarray(models, dtype=np.float64)
     n_clusters = len(models)
     height, width = sensor_size
@@ -51,6 +58,13 @@ def shared_motion_groups(
             corners = np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]])
             difference = motion.velocity(corners, models[a]) - motion.velocity(corners, models[b])
             close[a, b] = close[b, a] = duration * np.linalg.norm(difference, axis=-1).max() < tolerance_px
+    return close
+
+
+def motion_groups(close: np.ndarray) -> np.ndarray:
+    """The groups of a :func:`moving_alike` matrix :math:`(K, K)`: each cluster's group named by its lowest
+    cluster index, int64 :math:`(K,)`."""
+    n_clusters = len(close)
     _, component = connected_components(close, directed=False)
     lowest = np.full(n_clusters, n_clusters, dtype=np.int64)
     np.minimum.at(lowest, component, np.arange(n_clusters))

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from evseg_torch.motion.shared import shared_motion_groups
+from evseg_torch.motion.shared import motion_groups, moving_alike
 
 __all__ = ["label_cost", "motion_label_costs"]
 
@@ -64,26 +64,19 @@ def motion_label_costs(
         :func:`~evseg_torch.graphcut.alpha_expansion.alpha_expansion`: :math:`(K,)`, int64 :math:`(K,)`
         in ``[-1, G)`` and :math:`(G,)`.
     """
-    objects = np.ones(len(models), dtype=bool)
-    shared = _shared(models, boxes, objects, duration, motion, sensor_size)
-    objects &= shared != shared[background]
+    close = moving_alike(models, boxes, duration, motion, sensor_size)
+    shared = motion_groups(close)
     low, high = boxes[:, :2], boxes[:, :2] + boxes[:, 2:]
     meet = np.all((low[:, None] <= high[None]) & (low[None] <= high[:, None]), axis=2)
     holds = np.all((low[:, None] <= low[None]) & (high[None] <= high[:, None]), axis=2)
-    parts = meet & ~holds & ~holds.T & (shared[:, None] == shared[None]) & (shared[:, None] >= 0)
+    parts = meet & ~holds & ~holds.T & (shared[:, None] == shared[None])
     np.fill_diagonal(parts, False)
-    shared = _shared(models, boxes, objects & ~parts.any(axis=1), duration, motion, sensor_size)
-    _, index, sizes = np.unique(shared, return_inverse=True, return_counts=True)
-    group = np.where((shared >= 0) & (sizes[index] > 1), shared, -1)
-    _, group[group >= 0] = np.unique(group[group >= 0], return_inverse=True)
+    objects = np.flatnonzero((shared != shared[background]) & ~parts.any(axis=1))
+    # The objects' own groups: those of the moving-alike pairs among them alone.
+    own = motion_groups(close[np.ix_(objects, objects)])
+    _, index, sizes = np.unique(own, return_inverse=True, return_counts=True)
+    grouped = sizes[index] > 1
+    group = np.full(len(models), -1, dtype=np.int64)
+    _, group[objects[grouped]] = np.unique(own[grouped], return_inverse=True)
     label_costs = np.where(group >= 0, object_fraction * cost, cost)
     return label_costs, group, np.full(int(group.max()) + 1, (1 - object_fraction) * cost)
-
-
-def _shared(models, boxes, chosen, duration, motion, sensor_size) -> np.ndarray:
-    """:func:`~evseg_torch.motion.shared.shared_motion_groups` of the ``chosen`` labels, -1 for the others."""
-    shared = np.full(len(models), -1, dtype=np.int64)
-    index = np.flatnonzero(chosen)
-    if len(index):
-        shared[index] = shared_motion_groups(models[index], boxes[index], duration, motion, sensor_size)
-    return shared
