@@ -193,7 +193,11 @@ class CascadedSegmenter(nn.Module):
         return self.segment_batch([events], t_ref, None if initial_models is None else [initial_models])[0]
 
     def segment_batch(
-        self, windows: Sequence, t_ref: float | None = None, initial_models: Sequence | None = None
+        self,
+        windows: Sequence,
+        t_ref: float | None = None,
+        initial_models: Sequence | None = None,
+        level_one: Sequence[bool] | None = None,
     ) -> list[Segmentation]:
         """Segment several windows, with one batched level two for all of them.
 
@@ -205,6 +209,8 @@ class CascadedSegmenter(nn.Module):
             windows: B windows, each in any form :meth:`forward` accepts for one window.
             t_ref: reference time of every window, seconds; defaults to each window's first event.
             initial_models: one :math:`(M, P)` stack (or ``None``) per window.
+            level_one: whether level one runs in each window that carries models in (a window without
+                runs it always); ``None``: unless ``level_one.initial_models`` is ``replace``.
 
         Returns:
             One :class:`Segmentation` per window, in order; ``timings_ms["level_two"]`` is the batched
@@ -225,12 +231,14 @@ class CascadedSegmenter(nn.Module):
         as_tensors = [isinstance(window, (Tensor, EventBatch)) for window in windows]
         starts = [time.perf_counter()]
         prepared = []
-        for window, models in zip(windows, initial_models, strict=True):
+        if level_one is None:
+            level_one = [self.config.level_one.initial_models != "replace"] * len(windows)
+        for window, models, runs in zip(windows, initial_models, level_one, strict=True):
             events = as_events(_event_rows(window), self.sensor_size)
             if isinstance(models, Tensor):
                 models = models.detach().cpu().numpy()
             t_ref_us = _reference_us(events, t_ref)
-            prepared.append((events, t_ref_us, *self._level_one(events, t_ref_us, models)))
+            prepared.append((events, t_ref_us, *self._level_one(events, t_ref_us, models, runs)))
             starts.append(time.perf_counter())
         device, dtype = self._device_dtype()
         batches = [
@@ -254,7 +262,8 @@ class CascadedSegmenter(nn.Module):
             for models in initial_models
         ]
         with torch.no_grad():
-            twos = self.level_two(batches, pools, discovery_rounds=rounds)
+            carried = [_carries(models) for models in initial_models]
+            twos = self.level_two(batches, pools, discovery_rounds=rounds, carried=carried)
         level_two_ms = 1e3 * (time.perf_counter() - starts[-1]) / len(windows)
         return [
             self._result(item, batch, two, level_one_ms, level_two_ms, tensors)
@@ -270,14 +279,18 @@ class CascadedSegmenter(nn.Module):
         stride_ms: float | None = None,
         events_per_window: int | None = None,
         batch_size: int = 1,
-        segment_windows: Callable[[list, np.ndarray | None], list[Segmentation]] | None = None,
+        segment_windows: Callable[[list, np.ndarray | None, list[bool]], list[Segmentation]] | None = None,
         first_window: int = 0,
         max_windows: int | None = None,
         initial_models: np.ndarray | None = None,
         initial_objects: TrackedClusters | None = None,
         next_object_id: int = 1,
     ) -> Iterator[Segmentation]:
-        """Segment sliding windows, reusing each window's models to bootstrap the next.
+        """Segment sliding windows, each starting from the last one's models (carried forward).
+
+        A window that carries models in takes a shorter descent (``level_two.carried_rounds``,
+        ``carried_discovery``) and, with ``level_one.initial_models: demand``, runs level one only every
+        ``refresh_windows`` windows: it pays for what changed since the window before.
 
         Args:
             events: all events (any accepted form), or an iterable of canonical chunks of a recording.
@@ -286,8 +299,9 @@ class CascadedSegmenter(nn.Module):
                 window of a batch starts from the models of the last window of the batch before (the
                 windows of a batch are segmented at once, so none can wait for its predecessor's).
             segment_windows: segments one batch: called with the batch's windows (a list of canonical
-                event arrays) and the models all of them start from (:math:`(M, P)`, or ``None``), it
-                returns one :class:`Segmentation` per window, in order. Default: this segmenter, in this
+                event arrays), the models all of them start from (:math:`(M, P)`, or ``None``) and
+                whether level one runs in each (``level_one.initial_models``), it returns one
+                :class:`Segmentation` per window, in order. Default: this segmenter, in this
                 process (:meth:`segment_batch`). ``evseg_torch.app.workers.WindowPool(segmenter, n).segment``
                 shares a batch's windows out among ``n`` processes, one torch thread each, with the results
                 of one process on one torch thread, window by window.
@@ -342,7 +356,8 @@ class CascadedSegmenter(nn.Module):
             previous = self._plausible(models)
         tracker = ObjectTracker(self.motion, initial_objects, next_object_id)
         for batch in _batched(kept, batch_size):
-            results = segment([window.events for window in batch], previous)
+            runs = [self._runs_level_one(window.index) for window in batch]
+            results = segment([window.events for window in batch], previous, runs)
             if self.config.level_one.reuse_models:
                 previous = self._plausible(results[-1].models)
             for window, result in zip(batch, results, strict=True):
@@ -354,9 +369,20 @@ class CascadedSegmenter(nn.Module):
         the next window."""
         return models[self.motion.plausible(models)]
 
-    def _segment(self, windows: list, initial_models) -> list[Segmentation]:
+    def _runs_level_one(self, index: int) -> bool:
+        """Whether level one runs in a stream's window ``index`` if it carries models in: with ``demand``,
+        on every ``refresh_windows``-th window of the stream (a window's index, not the windows before,
+        decides, so that a resumed stream runs it where the uninterrupted one did)."""
+        settings = self.config.level_one
+        if settings.initial_models == "demand":
+            return index % settings.refresh_windows == 0
+        return settings.initial_models == "augment"
+
+    def _segment(
+        self, windows: list, initial_models, level_one: list[bool] | None = None
+    ) -> list[Segmentation]:
         """:meth:`segment_batch` with every window starting from the same models."""
-        return self.segment_batch(windows, None, [initial_models] * len(windows))
+        return self.segment_batch(windows, None, [initial_models] * len(windows), level_one)
 
     def _result(
         self, prepared, batch: EventBatch, two, before_ms: float, level_two_ms: float, as_tensors: bool
@@ -400,14 +426,14 @@ class CascadedSegmenter(nn.Module):
         )
         return replace(result, object_ids=ObjectTracker(self.motion).update(result))
 
-    def _level_one(self, events: np.ndarray, t_ref_us: int, initial_models):
-        """Features and Progressive-X; skipped in a window of one instant, on a tiny sensor, or when the
-        config says that given models replace level one."""
+    def _level_one(self, events: np.ndarray, t_ref_us: int, initial_models, runs: bool = True):
+        """Features and Progressive-X; skipped in a window of one instant, on a tiny sensor, or where the
+        window carries models in and ``runs`` is false (they are then level two's pool)."""
         cfg = self.config
         start = time.perf_counter()
         given = None if initial_models is None else self.motion.check_instances(initial_models)
         carried = _carries(given)
-        replaced = carried and cfg.level_one.initial_models == "replace"
+        replaced = carried and not runs
         if replaced or events["t"][-1] == events["t"][0] or min(self.sensor_size) < _MIN_FEATURE_SIZE:
             empty = np.zeros((0, 2))
             tracks = Correspondences(empty, empty, np.zeros(0), 0.0, 0.0)

@@ -216,8 +216,9 @@ def test_workers_and_batches_do_not_change_ids(one_thread):
 @pytest.mark.parametrize("batch_size", [1, 3])
 def test_a_resumed_run_writes_the_ids_of_an_uninterrupted_one(tmp_path, monkeypatch, one_thread, batch_size):
     # A scene whose objects get ids above their count after the stop (see the last asserts); scene 9 was
-    # one until the data term's floor changed, scene 11 until level one ran twice; scenes 18 and 19 are now.
-    scene = make_scene(SIZE, 0.08, n_objects=2, rng=18, n_events=12000)
+    # one until the data term's floor changed, scene 11 until level one ran twice, scene 18 until streams
+    # ran level one on demand; scene 25 is now.
+    scene = make_scene(SIZE, 0.08, n_objects=2, rng=25, n_events=12000)
     path = tmp_path / "scene.npy"
     np.save(path, scene.events)
     config = with_window(SegmenterConfig(), window_ms=10)

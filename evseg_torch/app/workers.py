@@ -40,8 +40,8 @@ def _start(segmenter) -> None:
     _segmenter = segmenter
 
 
-def _segment(windows: list, initial_models) -> list:
-    return _segmenter._segment(windows, initial_models)
+def _segment(windows: list, initial_models, level_one) -> list:
+    return _segmenter._segment(windows, initial_models, level_one)
 
 
 class WindowPool:
@@ -87,19 +87,27 @@ class WindowPool:
         finally:
             cv2.setNumThreads(threads)
 
-    def segment(self, windows: Sequence, initial_models) -> list:
+    def segment(self, windows: Sequence, initial_models, level_one: Sequence[bool] | None = None) -> list:
         """Segment ``windows`` (each starting from ``initial_models``), shared out in consecutive parts.
 
         Args:
             windows: B windows, each in any form the segmenter accepts.
             initial_models: :math:`(M, P)` models every window starts from, or ``None``.
+            level_one: whether level one runs in each window (``None``: as the config says).
 
         Returns:
             One :class:`~evseg_torch.pipeline.Segmentation` per window, in order.
         """
         parts = [part for part in np.array_split(np.arange(len(windows)), self.workers) if len(part)]
         tasks = [
-            self._pool.apply_async(_segment, ([windows[index] for index in part], initial_models))
+            self._pool.apply_async(
+                _segment,
+                (
+                    [windows[index] for index in part],
+                    initial_models,
+                    None if level_one is None else [level_one[index] for index in part],
+                ),
+            )
             for part in parts
         ]
         return [result for task in tasks for result in task.get()]

@@ -118,9 +118,17 @@ class LevelOneConfig(Section):
             proposes fewer spurious models but also separates fewer objects.
         reuse_models: bootstrap each window with the previous window's models (paper Table III).
         initial_models: what models given to the segmenter (a previous window's, or a network's
-            proposals) do. ``augment`` (default): level one runs and starts from them, so its pool holds
-            them and what it adds; ``replace``: level one does not run and they are level two's pool (a
-            stream then runs level one only on its first window, or after a window that kept no model).
+            proposals) do. ``augment``: level one runs and starts from them, so its pool holds them and
+            what it adds; ``replace``: level one does not run and they are level two's pool (a stream
+            then runs level one only on its first window, or after a window that kept no model);
+            ``demand`` (default; level one on demand, beyond the paper): as ``augment`` for models given
+            to :meth:`~evseg_torch.pipeline.CascadedSegmenter.forward`, while a stream runs level one
+            only on every ``refresh_windows``-th window and where no model is carried in, its other
+            windows starting from the carried models alone, as with ``replace``.
+        refresh_windows: with ``demand``, a stream runs level one on the windows whose index is a
+            multiple of this (the index decides, so a resumed stream runs it where the uninterrupted one
+            did); 1 runs it on every window, as ``augment``. 4 by default: level one then finds what
+            entered the view within four windows, and discovery meanwhile.
         extra_thresholds: inlier thresholds of further Progressive-X runs on the same tracks (same seed,
             no initial models), whose models join the pool level two starts from (beyond the paper). They
             run only in windows that carry no models in: a stream's later windows start from the last
@@ -142,14 +150,15 @@ class LevelOneConfig(Section):
     scoring_exponent: float = setting(1.0, above=0)
     quality: str = setting("progressive_x", choices=Names("evseg_torch.level_one.gc_ransac", "QUALITIES"))
     reuse_models: bool = True
-    initial_models: str = setting("augment", choices=("augment", "replace"))
+    initial_models: str = setting("demand", choices=("augment", "replace", "demand"))
+    refresh_windows: int = setting(4, at_least=1)
     extra_thresholds: tuple[float, ...] = setting((1.25,), above=0)
 
     def progressive_x_settings(self) -> dict:
         """The keywords of :func:`~evseg_torch.level_one.progressive_x.progressive_x` that this section
         sets (all its fields but the pipeline's own ``reuse_models``, ``initial_models`` and
         ``extra_thresholds``)."""
-        pipeline_only = {"reuse_models", "initial_models", "extra_thresholds"}
+        pipeline_only = {"reuse_models", "initial_models", "refresh_windows", "extra_thresholds"}
         return {
             f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in pipeline_only
         }
@@ -230,6 +239,18 @@ class LevelTwoConfig(Section):
             that carries models in (a stream's windows after its first, or given ``initial_models``): they
             start from objects that the windows before split and joined already, where a second round
             costs streamed detection (``docs/objects.md``). Level two alone uses ``discovery_rounds``.
+        carried_rounds: labellings, at most, of the descent of a window that carries models in (a
+            stream's windows after its first, or given ``initial_models``) before discovery; its first
+            refit starts warm (``warm_max_iter``), from models the window before refitted already.
+            ``None``: as a window of its own (``n_iter_segmentation``, ``max_iter``). 2 by default
+            (beyond the paper): a labelling, a refit and a labelling settle a window that starts where
+            the last one ended.
+        carried_discovery: what discovery proposes in a window that carries models in. ``new``
+            (default, beyond the paper): only what the carried models do not explain, the separate
+            groups of a cluster (objects that parted, a new object in the background's view) and
+            residual regions; no halves or unions of the carried clusters, which the windows before
+            judged; and a round whose proposals are all rejected settles the window. ``all``: as a
+            window of its own.
         discovery_min_events: fewest events of a region that gets a proposed model.
         discovery_residual_cost: also propose models for connected events whose own model's data cost is
             at least this (of 255); ``None`` (default) for none: with the ``relative`` data term most
@@ -289,6 +310,8 @@ class LevelTwoConfig(Section):
     label_cost_events: float | None = setting(15000.0, above=0)
     discovery_rounds: int = setting(2, at_least=0)
     carried_discovery_rounds: int = setting(1, at_least=0)
+    carried_rounds: int | None = setting(2, at_least=1)
+    carried_discovery: str = setting("new", choices=("all", "new"))
     discovery_min_events: int = setting(100, at_least=1)
     discovery_residual_cost: float | None = setting(None, at_least=0, at_most=255)
     discovery_radius: int = setting(2, at_least=0)

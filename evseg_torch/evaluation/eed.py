@@ -51,12 +51,15 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from evseg_torch.config import SegmenterConfig
 from evseg_torch.errors import ConfigError, ReaderError
 from evseg_torch.evaluation.metrics import box_intersection, box_iou, box_of_points, boxes_nested
 from evseg_torch.events.images import event_counts
 from evseg_torch.io import load_eed_boxes, load_events
+from evseg_torch.level_two.image.warp import warp_events
+from evseg_torch.motion import MotionModel
 from evseg_torch.pipeline import CascadedSegmenter
 
 EED_SENSOR_SIZE = (180, 240)  # DAVIS240; the boxes are drawn on its 240x180 APS frames
@@ -203,20 +206,80 @@ def evaluate_boxes(
             continue
         t_ref = t_s if reference == "box" else int(window["t"][0]) * 1e-6
         segmentation = segmenter(window, t_ref=t_ref)
-        candidates = cluster_boxes(segmentation, min_count)
-        scored = [
-            _match(t_s, boxes[index], len(window), segmentation.n_clusters, candidates) for index in group
-        ]
-        gt_boxes = np.stack([boxes[index] for index in group])
-        outcomes = box_outcomes(segmentation, gt_boxes, [result.detected_nested for result in scored])
-        tracks, own_model = level_one_support(segmentation, gt_boxes)
-        for k, index in enumerate(group):
-            results[index] = replace(
-                scored[k], outcome=outcomes[k], tracks=int(tracks[k]), own_model=bool(own_model[k])
-            )
+        scored = _score_boxes(segmentation, t_s, boxes[group], min_count)
+        for index, result in zip(group, scored, strict=True):
+            results[index] = result
             if on_window is not None:
-                on_window(results[index], segmentation)
+                on_window(result, segmentation)
     return results
+
+
+def evaluate_stream_boxes(
+    segmentations, box_times_s: np.ndarray, boxes: np.ndarray, motion: MotionModel, min_count: float = 2.0
+) -> list[BoxResult]:
+    """The protocol on a stream's windows (``evseg segment``; beyond the protocol, module docstring).
+
+    Each GT box is scored on the streamed window that holds its time, with that window's clusters
+    compensated to the box time (their models moved from the window's reference time), so that a stream
+    and the same windows segmented cold are scored alike. A box time no window holds is not evaluable.
+
+    Args:
+        segmentations: the stream's windows (:class:`~evseg_torch.pipeline.Segmentation`), in the time
+            base of ``box_times_s``.
+        box_times_s: GT box times in seconds, :math:`(M,)`.
+        boxes: GT boxes ``[x, y, w, h]``, :math:`(M, 4)`.
+        motion: the motion model of the windows' models.
+        min_count: a pixel of a cluster's compensated image belongs to its box above this count.
+
+    Returns:
+        One :class:`BoxResult` per GT box.
+    """
+    times = np.asarray(box_times_s, dtype=np.float64)
+    boxes = np.asarray(boxes, dtype=np.float64)
+    results = [None] * len(boxes)
+    for t_s in dict.fromkeys(times.tolist()):
+        group = np.flatnonzero(times == t_s)
+        window = _holding(segmentations, t_s)
+        if window is None:
+            scored = [BoxResult(t_s, box, False, 0, np.full(4, np.nan), 0.0, 0.0, 0) for box in boxes[group]]
+        else:
+            scored = _score_boxes(_compensated_to(window, t_s, motion), t_s, boxes[group], min_count)
+        for index, result in zip(group, scored, strict=True):
+            results[index] = result
+    return results
+
+
+def _holding(segmentations, t_s: float):
+    """The first window whose events span the time ``t_s`` (seconds), or ``None``."""
+    centre = round(t_s * 1e6)
+    return next(
+        (s for s in segmentations if len(s.events) and s.events["t"][0] <= centre <= s.events["t"][-1]),
+        None,
+    )
+
+
+def _compensated_to(segmentation, t_s: float, motion: MotionModel):
+    """The segmentation with every event warped by its cluster's model to ``t_s`` (seconds)."""
+    events = segmentation.events
+    xy = torch.as_tensor(np.stack([events["x"], events["y"]], axis=1), dtype=torch.float64)
+    t = torch.as_tensor((events["t"] - round(t_s * 1e6)) * 1e-6, dtype=torch.float64)
+    labels = np.asarray(segmentation.labels)
+    own = torch.as_tensor(np.asarray(segmentation.models)[np.maximum(labels, 0)], dtype=torch.float64)
+    warped = warp_events(motion, xy[:, None], t[:, None], own)[:, 0].numpy()
+    return replace(segmentation, warped_xy=warped, t_ref=t_s)
+
+
+def _score_boxes(segmentation, t_s: float, gt_boxes: np.ndarray, min_count: float) -> list[BoxResult]:
+    """Every GT box of one time scored on one window's segmentation (module docstring)."""
+    n_events = len(segmentation.labels)
+    candidates = cluster_boxes(segmentation, min_count)
+    scored = [_match(t_s, box, n_events, segmentation.n_clusters, candidates) for box in gt_boxes]
+    outcomes = box_outcomes(segmentation, gt_boxes, [result.detected_nested for result in scored])
+    tracks, own_model = level_one_support(segmentation, gt_boxes)
+    return [
+        replace(result, outcome=outcome, tracks=int(count), own_model=bool(own))
+        for result, outcome, count, own in zip(scored, outcomes, tracks, own_model, strict=True)
+    ]
 
 
 def _match(t_s: float, gt: np.ndarray, n_events: int, n_clusters: int, candidates: dict) -> BoxResult:
@@ -392,10 +455,7 @@ def separate_in_stream(
     for t_s in dict.fromkeys(times.tolist()):
         group = np.flatnonzero(times == t_s)
         centre = round(t_s * 1e6)
-        window = next(
-            (s for s in segmentations if len(s.events) and s.events["t"][0] <= centre <= s.events["t"][-1]),
-            None,
-        )
+        window = _holding(segmentations, t_s)
         if len(group) < 2 or window is None:
             continue
         near = np.abs(window.events["t"] - centre) <= near_ms * 1e3

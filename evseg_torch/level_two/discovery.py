@@ -79,6 +79,7 @@ def candidate_regions(
     residual_cost: float | None,
     radius: int,
     around: np.ndarray | None = None,
+    carried: bool = False,
 ) -> list[tuple[int, np.ndarray]]:
     """Regions of events to propose models for (module docstring).
 
@@ -93,6 +94,10 @@ def candidate_regions(
         radius: dilation of each event's pixel when joining events into regions.
         around: bool :math:`(K,)`, for a later round: only the regions holding events of these clusters
             (the ones the round before created); ``None`` for all.
+        carried: the clusters come from models a stream carried in, whose objects the windows before
+            split and joined already: no cluster's halves and no union are proposed again, only the
+            separate groups of a cluster (objects that parted, a new object in the background's view)
+            and residual regions.
 
     Returns:
         ``(cluster, members)`` pairs: the cluster a region came from (the larger of a merged pair, the
@@ -104,12 +109,14 @@ def candidate_regions(
     around = np.ones(n_clusters, dtype=bool) if around is None else around
     for cluster in np.flatnonzero(around[:n_clusters]).tolist():
         groups = _connected_groups(xy, labels == cluster, sensor_size, min_events, radius)
-        if len(groups) == 1:
+        if len(groups) == 1 and carried:
+            groups = []
+        elif len(groups) == 1:
             # Not the largest cluster: it spans the view (the background), and a model of half of it
             # only overfits that half (measured: it split the background of sparse windows).
             groups = [part for part in bisect(xy, groups[0]) if len(part) >= min_events] if cluster else []
         regions += [(cluster, members) for members in groups]
-    for first in range(1, n_clusters):
+    for first in range(1, 0 if carried else n_clusters):
         for second in range(first + 1, n_clusters):
             if not (around[first] or around[second]):
                 continue
@@ -311,6 +318,7 @@ class Discovery:
                 residual_cost=self.config.discovery_residual_cost,
                 radius=self.config.discovery_radius,
                 around=state.new_clusters,
+                carried=state.carried and self.config.carried_discovery == "new",
             )
             candidate, regions = self._proposal_starts(state, regions[: self.config.discovery_max_proposals])
             candidates.append(candidate)

@@ -14,7 +14,6 @@ over 30 ms windows (1 px kept one window's balls in one cluster).
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse.csgraph import connected_components
 
 __all__ = ["SHARED_MOTION_PX", "motion_groups", "moving_alike", "shared_motion_groups"]
 
@@ -47,25 +46,29 @@ def moving_alike(
 ) -> np.ndarray:
     """Which pairs of clusters move alike, bool :math:`(K, K)` (arguments of :func:`shared_motion_groups`)."""
     models = np.asarray(models, dtype=np.float64)
-    n_clusters = len(models)
     height, width = sensor_size
     boxes = np.where(np.isfinite(boxes), boxes, [0.0, 0.0, width - 1.0, height - 1.0])
     low, high = boxes[:, :2], boxes[:, :2] + boxes[:, 2:]
-    close = np.eye(n_clusters, dtype=bool)
-    for a in range(n_clusters):
-        for b in range(a + 1, n_clusters):
-            (x0, y0), (x1, y1) = np.minimum(low[a], low[b]), np.maximum(high[a], high[b])
-            corners = np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]])
-            difference = motion.velocity(corners, models[a]) - motion.velocity(corners, models[b])
-            close[a, b] = close[b, a] = duration * np.linalg.norm(difference, axis=-1).max() < tolerance_px
+    # The corners of the box holding each pair, (K, K, 4, 2), and both models' velocities there.
+    (x0, y0), (x1, y1) = (
+        np.moveaxis(np.minimum(low[:, None], low[None]), -1, 0),
+        np.moveaxis(np.maximum(high[:, None], high[None]), -1, 0),
+    )
+    corners = np.stack([np.stack(corner, axis=-1) for corner in ((x0, y0), (x1, y0), (x0, y1), (x1, y1))], 2)
+    jac = motion.jacobian(corners)  # (K, K, 4, 2, P)
+    first = (jac @ models[:, None, None, :, None])[..., 0]
+    second = (jac @ models[None, :, None, :, None])[..., 0]
+    close = duration * np.linalg.norm(first - second, axis=-1).max(axis=-1, initial=0.0) < tolerance_px
+    np.fill_diagonal(close, True)
     return close
 
 
 def motion_groups(close: np.ndarray) -> np.ndarray:
     """The groups of a :func:`moving_alike` matrix :math:`(K, K)`: each cluster's group named by its lowest
     cluster index, int64 :math:`(K,)`."""
-    n_clusters = len(close)
-    _, component = connected_components(close, directed=False)
-    lowest = np.full(n_clusters, n_clusters, dtype=np.int64)
-    np.minimum.at(lowest, component, np.arange(n_clusters))
-    return lowest[component]
+    reach = np.asarray(close, dtype=bool) | np.eye(len(close), dtype=bool)
+    reach |= reach.T
+    # Squared until it stops growing: which clusters a chain of pairs joins (K is a window's few models).
+    while not np.array_equal(grown := (reach @ reach), reach):
+        reach = grown
+    return reach.argmax(axis=1).astype(np.int64) if len(reach) else np.zeros(0, dtype=np.int64)

@@ -35,7 +35,9 @@ def _layout(*blocks):
     return np.concatenate(xy), np.concatenate(labels), index
 
 
-def _regions(xy, labels, own_cost=None, min_events=20, residual_cost=None, radius=2, around=None):
+def _regions(
+    xy, labels, own_cost=None, min_events=20, residual_cost=None, radius=2, around=None, carried=False
+):
     own_cost = np.zeros(len(labels)) if own_cost is None else own_cost
     regions = candidate_regions(
         xy,
@@ -46,6 +48,7 @@ def _regions(xy, labels, own_cost=None, min_events=20, residual_cost=None, radiu
         residual_cost=residual_cost,
         radius=radius,
         around=around,
+        carried=carried,
     )
     sizes = [len(members) for _, members in regions]
     assert sizes == sorted(sizes, reverse=True)  # largest regions first
@@ -156,6 +159,24 @@ class TestCandidateRegions:
         assert (1, _union(first, second)) in _as_sets(kept)
         assert all(not members & set(far.tolist()) for _, members in _as_sets(kept))
         assert _regions(xy, labels, around=np.zeros(4, dtype=bool)) == []
+
+    def test_carried_clusters_propose_only_their_separate_groups(self):
+        xy, labels, (_, first, second, far, other) = _layout(
+            (0, (0, 20, 0, 40)),
+            (1, (30, 40, 5, 15)),
+            (2, (40, 46, 5, 15)),  # touching cluster 1
+            (3, (30, 40, 30, 34)),  # far from both, one group
+            (3, (50, 58, 30, 34)),  # a second group of cluster 3
+        )
+        everything = _as_sets(_regions(xy, labels))
+        assert (1, _union(first, second)) in everything  # a union and halves, in a window of its own
+        assert sum(cluster == 1 for cluster, _ in everything) > 1
+        carried = _as_sets(_regions(xy, labels, carried=True))
+        # No halves, no unions: only cluster 3's two groups.
+        assert sorted(members for cluster, members in carried if cluster == 3) == sorted(
+            [frozenset(far.tolist()), frozenset(other.tolist())], key=min
+        )
+        assert {cluster for cluster, _ in carried} == {3}
 
     def test_residual_regions(self):
         xy, labels, (_, first, second, _) = _layout(

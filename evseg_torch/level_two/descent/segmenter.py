@@ -196,6 +196,7 @@ class GraphCutContrastSegmenter(nn.Module):
         init_labels: Tensor | np.ndarray | Sequence | None = None,
         *,
         discovery_rounds: int | Sequence[int] | None = None,
+        carried: bool | Sequence[bool] = False,
     ) -> LevelTwoResult | list[LevelTwoResult]:
         r"""Segment one window, or each window of a list or of a padded batch.
 
@@ -213,20 +214,29 @@ class GraphCutContrastSegmenter(nn.Module):
                 starts at its cheapest model.
             discovery_rounds: discovery rounds of every window, or a list of one per window; by default
                 ``config.discovery_rounds`` (the pipeline gives a window that carries models in fewer).
+            carried: whether each window's pool is models a stream carried in (one flag for all, or one
+                per window): such a window takes the shorter descent of ``carried_rounds`` and
+                ``carried_discovery``.
 
         Returns:
             :class:`LevelTwoResult`, or a list of them for several windows.
 
         Raises:
             EventFormatError: if ``events`` is not an EventBatch (or a list of them) or a window is empty.
-            ShapeError: if ``init_params`` or ``init_labels`` has the wrong shape, or labels out of range.
+            ShapeError: if ``init_params`` or ``init_labels`` has the wrong shape, labels are out of range,
+                or ``discovery_rounds`` or ``carried`` does not hold one entry per window.
             ModelError: if ``init_params`` hold NaN or inf.
             ConfigError: if a ``discovery_rounds`` is not a non-negative integer.
         """
         if isinstance(events, EventBatch) and not events.is_batched:
             rounds = self._discovery_rounds(discovery_rounds, 1)
             return self._segment(
-                batch_of_one(check_events(events)), [events], [init_params], [init_labels], rounds
+                batch_of_one(check_events(events)),
+                [events],
+                [init_params],
+                [init_labels],
+                rounds,
+                _per_window(carried, 1),
             )[0]
         if isinstance(events, EventBatch):
             windows = [check_events(window) for window in events.unbatch()]
@@ -256,7 +266,8 @@ class GraphCutContrastSegmenter(nn.Module):
                 f"got {count} windows but {len(pools)} pools and {len(labels)} initial labellings"
             )
         rounds = self._discovery_rounds(discovery_rounds, count)
-        return self._segment(batch, windows, pools, labels, rounds) if count else []
+        flags = _per_window(carried, count)
+        return self._segment(batch, windows, pools, labels, rounds, flags) if count else []
 
     def _discovery_rounds(self, rounds: int | Sequence[int] | None, count: int) -> list[int]:
         """Each window's discovery rounds, checked."""
@@ -301,13 +312,19 @@ class GraphCutContrastSegmenter(nn.Module):
         )
 
     def _segment(
-        self, batch: EventBatch, windows: list[EventBatch], pools: list, init_labels: list, rounds: list[int]
+        self,
+        batch: EventBatch,
+        windows: list[EventBatch],
+        pools: list,
+        init_labels: list,
+        rounds: list[int],
+        carried: list[bool],
     ) -> list[LevelTwoResult]:
         """Segment the windows of ``batch`` together; on the CPU in groups of consecutive windows."""
         budget = _CPU_BATCH_EVENTS if batch.xy.device.type == "cpu" else None
         groups = chunks([len(window) for window in windows], budget)
         if len(groups) == 1:
-            return self._segment_together(batch, windows, pools, init_labels, rounds)
+            return self._segment_together(batch, windows, pools, init_labels, rounds, carried)
         results = []
         for group in groups:
             own = [windows[index] for index in group]
@@ -317,20 +334,29 @@ class GraphCutContrastSegmenter(nn.Module):
                 [pools[index] for index in group],
                 [init_labels[index] for index in group],
                 [rounds[index] for index in group],
+                [carried[index] for index in group],
             )
         return results
 
     def _segment_together(
-        self, batch: EventBatch, windows: list[EventBatch], pools: list, init_labels: list, rounds: list[int]
+        self,
+        batch: EventBatch,
+        windows: list[EventBatch],
+        pools: list,
+        init_labels: list,
+        rounds: list[int],
+        carried: list[bool],
     ) -> list[LevelTwoResult]:
         """The block-coordinate descent of every window of ``batch``, in lockstep (module docstring)."""
         clock = StageClock(len(windows))
         states = []
-        for index, (events, pool, labels, n_rounds) in enumerate(
-            zip(windows, pools, init_labels, rounds, strict=True)
+        for index, (events, pool, labels, n_rounds, carries) in enumerate(
+            zip(windows, pools, init_labels, rounds, carried, strict=True)
         ):
             states.append(
-                start_window(index, events, pool, labels, self.model, self.sensor_size, self.config, n_rounds)
+                start_window(
+                    index, events, pool, labels, self.model, self.sensor_size, self.config, n_rounds, carries
+                )
             )
             clock.lap("graph", states[-1:])
         site_index = padded_rows([state.sites for state in states], batch.t.shape[1], device=batch.xy.device)
@@ -355,9 +381,7 @@ class GraphCutContrastSegmenter(nn.Module):
             for max_iter, first in ((config.max_iter, True), (warm_max_iter, False)):
                 # Only the first refit of a window starts from the initial pool (see warm_max_iter).
                 chosen = [
-                    state
-                    for state in active
-                    if state.step is Step.REFIT and (len(state.history) == 1) == first
+                    state for state in active if state.step is Step.REFIT and self._cold_refit(state) == first
                 ]
                 if chosen:
                     self._refit(max_iter, select_windows(batch, chosen), chosen)
@@ -369,6 +393,12 @@ class GraphCutContrastSegmenter(nn.Module):
             replace(result, timings_ms=timings)
             for result, timings in zip(results, clock.timings, strict=True)
         ]
+
+    def _cold_refit(self, state: WindowState) -> bool:
+        """Whether a window's refit starts from its initial pool, which only a window's first refit does,
+        unless the pool is a stream's carried models, already refitted in the window before."""
+        warm_start = state.carried and self.config.carried_rounds is not None
+        return len(state.history) == 1 and not warm_start
 
     def _data_costs(self, batch: EventBatch, states: list[WindowState], site_index: Tensor) -> None:
         """The windows' data costs, batched, and the graph cuts' cost matrices, copied to the CPU at once.
@@ -416,7 +446,12 @@ class GraphCutContrastSegmenter(nn.Module):
             init_labels=state.node_labels,
             max_cycles=self.config.n_iter_labeling,
         )
-        state.labelled(result.labels, result.energy, self.config.label_tol)
+        state.labelled(
+            result.labels,
+            result.energy,
+            self.config.label_tol,
+            settle_on_reject=state.carried and self.config.carried_discovery == "new",
+        )
         self._advance(state)
 
     def _advance(self, state: WindowState) -> None:
@@ -469,3 +504,11 @@ class GraphCutContrastSegmenter(nn.Module):
                 )
             )
         return results
+
+
+def _per_window(flags: bool | Sequence[bool], count: int) -> list[bool]:
+    """One flag per window, checked."""
+    each = [bool(flags)] * count if isinstance(flags, bool) else [bool(flag) for flag in flags]
+    if len(each) != count:
+        raise ShapeError(f"got {count} windows but {len(each)} carried flags")
+    return each

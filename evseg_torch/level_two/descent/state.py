@@ -39,7 +39,7 @@ class WindowState:
     labelling's pool, the energy after each labelling ``history``, the last data costs ``event_cost``
     :math:`(N, K)` and their sums per node ``node_cost`` for the graph cut (``costs_ready`` when they are
     set for the next labelling already), and the budgets ``rounds_left``, ``discoveries_left`` and
-    ``splits_left``.
+    ``splits_left``; ``carried`` when the pool is models a stream carried in.
 
     Discovery: the events of each proposal ``regions`` (its first support in the object phase), the
     pool index ``proposed_from`` of the first proposal awaiting a labelling, and ``new_clusters``, the
@@ -64,6 +64,7 @@ class WindowState:
     rounds_left: int
     discoveries_left: int
     splits_left: int
+    carried: bool = False
     history: list[float] = field(default_factory=list)
     keep: np.ndarray | None = None
     event_cost: Tensor | None = None
@@ -85,10 +86,13 @@ class WindowState:
         labelling."""
         self.event_cost, self.node_cost = event_cost, node_cost
 
-    def labelled(self, node_labels: np.ndarray, energy: float, label_tol: float) -> None:
+    def labelled(
+        self, node_labels: np.ndarray, energy: float, label_tol: float, settle_on_reject: bool = False
+    ) -> None:
         """A labelling of the nodes and its energy: empty models dropped, the others renumbered by size
         (largest first), and whether the labels settled (one model left, the energy unchanged, or at
-        most ``label_tol`` of the events relabelled; or no round left)."""
+        most ``label_tol`` of the events relabelled; or no round left; or, with ``settle_on_reject``,
+        every proposal of the round rejected)."""
         self.rounds_left -= 1
         event_labels = node_labels[self.sites]
         mapping, keep = renumber_by_size(event_labels, self.params.shape[0])
@@ -103,6 +107,7 @@ class WindowState:
             self.new_clusters = keep >= self.proposed_from
             if not self.new_clusters.any():
                 self.discoveries_left = 0  # every proposal was rejected: proposing again would repeat them
+                converged = converged or settle_on_reject
         elif self.new_clusters is not None and not self.objects_on:
             # Followed through the descent's renumbering; the object phase, whose splits add clusters,
             # comes after the last round and no longer needs it.
@@ -170,6 +175,7 @@ def start_window(
     sensor_size: tuple[int, int],
     config: LevelTwoConfig,
     discovery_rounds: int,
+    carried: bool = False,
 ) -> WindowState:
     """A window's graph (:mod:`~evseg_torch.level_two.energy.graph`) and starting point, its inputs
     checked."""
@@ -186,6 +192,7 @@ def start_window(
             temporal_edges=config.temporal_edges,
         )
     n_sites = int(sites.max()) + 1
+    rounds = config.carried_rounds if carried and config.carried_rounds else config.n_iter_segmentation
     # Sites are numbered in row-major pixel order, already local; events are in time order.
     graph = potts_graph(edges, weights, n_nodes=n_sites, reorder=config.site_time_slices is None)
     node_labels = labels
@@ -202,9 +209,10 @@ def start_window(
         params=params,
         labels=labels,
         node_labels=node_labels,
-        rounds_left=config.n_iter_segmentation,
+        rounds_left=rounds,
         discoveries_left=discovery_rounds,
         splits_left=config.object_splits,
+        carried=carried,
     )
 
 

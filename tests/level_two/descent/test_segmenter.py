@@ -392,6 +392,29 @@ class TestBatches:
             with pytest.raises(ConfigError, match="discovery_rounds"):
                 segmenter(windows[0], pools[0], discovery_rounds=bad)
 
+    def test_carried_windows(self, batch_scenes):
+        # A window that carries models in (a stream's) takes its own, shorter descent; in a batch each
+        # window gets what it gets alone, carried or not, and a cold window is unchanged by the settings.
+        model, windows, pools = batch_scenes
+        carried = [True, False, True, False]
+        settings = {"carried_rounds": 1, "carried_discovery": "new"}
+        segmenter = GraphCutContrastSegmenter(model, BATCH_SIZE, **settings)
+        batched = segmenter(windows, pools, carried=carried)
+        plain = GraphCutContrastSegmenter(model, BATCH_SIZE)
+        for window, pool, carries, result in zip(windows, pools, carried, batched, strict=True):
+            alone = segmenter(window, pool, carried=carries)
+            assert torch.equal(result.labels, alone.labels) and torch.equal(result.params, alone.params)
+            assert result.energy_history == alone.energy_history
+            if not carries:
+                assert result.energy_history == plain(window, pool).energy_history
+        # With one round, no discovery and no object phase, a carried window is labelled once.
+        once = GraphCutContrastSegmenter(
+            model, BATCH_SIZE, carried_rounds=1, discovery_rounds=0, objects=False
+        )
+        assert all(len(result.energy_history) == 1 for result in once(windows, pools, carried=True))
+        with pytest.raises(ShapeError, match="carried"):
+            segmenter(windows, pools, carried=[True])
+
     def test_groups_and_chunks_on_the_cpu(self, batch_scenes, monkeypatch):
         # On the CPU a large batch is segmented in groups of windows, and its data terms are computed in
         # chunks: the results are the same.
