@@ -240,11 +240,9 @@ class LevelTwoConfig(Section):
             start from objects that the windows before split and joined already, where a second round
             costs streamed detection (``docs/objects.md``). Level two alone uses ``discovery_rounds``.
         carried_rounds: labellings, at most, of the descent of a window that carries models in (a
-            stream's windows after its first, or given ``initial_models``) before discovery; its first
-            refit starts warm (``warm_max_iter``), from models the window before refitted already.
-            ``None``: as a window of its own (``n_iter_segmentation``, ``max_iter``). 2 by default
-            (beyond the paper): a labelling, a refit and a labelling settle a window that starts where
-            the last one ended.
+            stream's windows after its first, or given ``initial_models``) before discovery; ``None``: as
+            a window of its own (``n_iter_segmentation``). 2 by default (beyond the paper): a labelling, a
+            refit and a labelling settle a window that starts where the last one ended.
         carried_discovery: what discovery proposes in a window that carries models in. ``new``
             (default, beyond the paper): only what the carried models do not explain, the separate
             groups of a cluster (objects that parted, a new object in the background's view) and

@@ -1,3 +1,4 @@
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -18,9 +19,13 @@ from evseg_torch.evaluation.eed import (
     evaluate_sequence,
     level_one_support,
     load_eed_sequence,
+    evaluate_stream_boxes,
     separate_in_stream,
 )
 from evseg_torch.events import EVENT_DTYPE
+from evseg_torch.level_one.features import Correspondences
+from evseg_torch.motion import Translation
+from evseg_torch.pipeline import Segmentation
 
 
 def _segmentation(warped_xy, labels, sensor_size=(30, 40), tracks=((), ()), track_labels=()):
@@ -335,3 +340,60 @@ class TestSeparateInStream:
     def test_a_time_no_window_holds_is_not_in_view(self):
         later = self._window(30_000, [0, 4, 7], 1, 2)
         assert separate_in_stream([later], self.TIMES, self.BOXES) == (0, 0)
+
+
+class TestEvaluateStreamBoxes:
+    """A streamed window is scored at each box time it holds, its clusters compensated to that time."""
+
+    SIZE = (30, 40)
+
+    def _window(self, t0_us, velocity):
+        # An object of 4 x 3 pixels moving at ``velocity`` px/s over 20 ms, 5 events per pixel at every
+        # 1 ms, among static background events on the left (labels 1 and 0; translation models).
+        xs, ys = np.meshgrid(np.arange(20, 24), np.arange(10, 13))
+        times = t0_us + 1000 * np.arange(21)
+        obj = np.zeros(12 * 21, dtype=EVENT_DTYPE)
+        obj["t"] = np.repeat(times, 12)
+        shift = velocity * (obj["t"] - (t0_us + 10_000)) * 1e-6
+        obj["x"] = np.tile(xs.ravel(), 21) + np.rint(shift).astype(np.int64)
+        obj["y"] = np.tile(ys.ravel(), 21)
+        background = _events(400, t0_us, 50, size=(30, 10), seed=1)
+        events = np.concatenate([obj, background])
+        order = np.argsort(events["t"], kind="stable")
+        labels = np.concatenate([np.ones(len(obj), dtype=np.int64), np.zeros(400, dtype=np.int64)])[order]
+        empty = np.zeros((0, 2))
+        return Segmentation(
+            labels=labels,
+            models=np.array([[0.0, 0.0], [velocity, 0.0]]),
+            motion_model="translation",
+            warped_xy=np.zeros((len(events), 2)),
+            t_ref=t0_us * 1e-6,
+            feature_tracks=Correspondences(empty, empty, np.zeros(0), 0.0, 0.0),
+            feature_labels=np.zeros(0, dtype=np.int64),
+            level_one_models=np.zeros((0, 2)),
+            iwes=np.zeros((2, *self.SIZE)),
+            soft_assignments=np.zeros((len(events), 2)),
+            energy_history=(),
+            timings_ms={},
+            sensor_size=self.SIZE,
+            events=events[order],
+        )
+
+    def test_clusters_are_compensated_to_the_box_time(self):
+        motion = Translation(self.SIZE)
+        stream = [self._window(0, 300.0), self._window(30_000, 300.0)]
+        box = np.array([[20.0, 10.0, 3.0, 2.0]])  # the object at 10 ms into the first window
+        (held,) = evaluate_stream_boxes(stream, np.array([0.010]), box, motion)
+        assert held.evaluable and held.detected and held.outcome == "detected"
+        # At 40 ms the second window's object is back at x 20-23 (it repeats): the box still holds it.
+        (later,) = evaluate_stream_boxes(stream, np.array([0.040]), box, motion)
+        assert later.detected
+        # At 15 ms the object has moved 1.5 px right of the box time's position: IoU falls but stays.
+        (moved,) = evaluate_stream_boxes(stream, np.array([0.015]), box, motion)
+        assert moved.iou < held.iou
+        # A time no window holds is not evaluable; a static model leaves the object smeared.
+        (outside,) = evaluate_stream_boxes(stream, np.array([0.100]), box, motion)
+        assert not outside.evaluable
+        smeared = [replace(window, models=np.zeros((2, 2))) for window in stream]
+        (blurred,) = evaluate_stream_boxes(smeared, np.array([0.010]), box, motion)
+        assert blurred.iou < held.iou

@@ -381,7 +381,9 @@ class GraphCutContrastSegmenter(nn.Module):
             for max_iter, first in ((config.max_iter, True), (warm_max_iter, False)):
                 # Only the first refit of a window starts from the initial pool (see warm_max_iter).
                 chosen = [
-                    state for state in active if state.step is Step.REFIT and self._cold_refit(state) == first
+                    state
+                    for state in active
+                    if state.step is Step.REFIT and (len(state.history) == 1) == first
                 ]
                 if chosen:
                     self._refit(max_iter, select_windows(batch, chosen), chosen)
@@ -393,12 +395,6 @@ class GraphCutContrastSegmenter(nn.Module):
             replace(result, timings_ms=timings)
             for result, timings in zip(results, clock.timings, strict=True)
         ]
-
-    def _cold_refit(self, state: WindowState) -> bool:
-        """Whether a window's refit starts from its initial pool, which only a window's first refit does,
-        unless the pool is a stream's carried models, already refitted in the window before."""
-        warm_start = state.carried and self.config.carried_rounds is not None
-        return len(state.history) == 1 and not warm_start
 
     def _data_costs(self, batch: EventBatch, states: list[WindowState], site_index: Tensor) -> None:
         """The windows' data costs, batched, and the graph cuts' cost matrices, copied to the CPU at once.
