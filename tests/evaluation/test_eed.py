@@ -17,9 +17,9 @@ from evseg_torch.evaluation.eed import (
     detection_rate,
     evaluate_boxes,
     evaluate_sequence,
+    evaluate_stream_boxes,
     level_one_support,
     load_eed_sequence,
-    evaluate_stream_boxes,
     separate_in_stream,
 )
 from evseg_torch.events import EVENT_DTYPE
