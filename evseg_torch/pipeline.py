@@ -209,8 +209,11 @@ class CascadedSegmenter(nn.Module):
             windows: B windows, each in any form :meth:`forward` accepts for one window.
             t_ref: reference time of every window, seconds; defaults to each window's first event.
             initial_models: one :math:`(M, P)` stack (or ``None``) per window.
-            level_one: whether level one runs in each window that carries models in (a window without
-                runs it always); ``None``: unless ``level_one.initial_models`` is ``replace``.
+            level_one: for a stream's windows (:meth:`stream` gives it): whether level one runs in each
+                window that carries models in (a window without runs it always), and such a window
+                takes level two's carried descent (``level_two.carried_rounds``, ``carried_discovery``).
+                ``None`` (windows of one's own, given models or not): level one runs unless
+                ``level_one.initial_models`` is ``replace``, and level two takes the full descent.
 
         Returns:
             One :class:`Segmentation` per window, in order; ``timings_ms["level_two"]`` is the batched
@@ -231,6 +234,7 @@ class CascadedSegmenter(nn.Module):
         as_tensors = [isinstance(window, (Tensor, EventBatch)) for window in windows]
         starts = [time.perf_counter()]
         prepared = []
+        streamed = level_one is not None
         if level_one is None:
             level_one = [self.config.level_one.initial_models != "replace"] * len(windows)
         for window, models, runs in zip(windows, initial_models, level_one, strict=True):
@@ -262,7 +266,7 @@ class CascadedSegmenter(nn.Module):
             for models in initial_models
         ]
         with torch.no_grad():
-            carried = [_carries(models) for models in initial_models]
+            carried = [streamed and _carries(models) for models in initial_models]
             twos = self.level_two(batches, pools, discovery_rounds=rounds, carried=carried)
         level_two_ms = 1e3 * (time.perf_counter() - starts[-1]) / len(windows)
         return [

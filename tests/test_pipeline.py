@@ -395,3 +395,20 @@ def test_a_carried_stream_scores_as_cold_windows(one_thread):
     stream, cold = (np.mean(scores[mode], axis=0) for mode in ("stream", "cold"))
     assert len(scores["stream"]) >= 16
     assert stream[0] >= cold[0] - 0.05 and stream[1] >= cold[1] - 0.1
+
+
+def test_only_a_streams_carried_windows_take_the_carried_descent(scene, result, monkeypatch):
+    segmenter = CascadedSegmenter(sensor_size=SIZE)
+    given = []
+    forward = segmenter.level_two.forward
+
+    def spy(*args, carried=False, **kwargs):
+        given.append(list(carried))
+        return forward(*args, carried=carried, **kwargs)
+
+    monkeypatch.setattr(segmenter.level_two, "forward", spy)
+    segmenter(scene.events, initial_models=result.models)  # a network's proposals: the full descent
+    assert given == [[False]]
+    given.clear()
+    list(segmenter.stream(make_scene(SIZE, 0.09, n_objects=1, rng=5).events, window_ms=30))
+    assert given == [[False], [True], [True]]

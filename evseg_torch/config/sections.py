@@ -239,11 +239,12 @@ class LevelTwoConfig(Section):
             that carries models in (a stream's windows after its first, or given ``initial_models``): they
             start from objects that the windows before split and joined already, where a second round
             costs streamed detection (``docs/objects.md``). Level two alone uses ``discovery_rounds``.
-        carried_rounds: labellings, at most, of the descent of a window that carries models in (a
-            stream's windows after its first, or given ``initial_models``) before discovery; ``None``: as
-            a window of its own (``n_iter_segmentation``). 2 by default (beyond the paper): a labelling, a
-            refit and a labelling settle a window that starts where the last one ended.
-        carried_discovery: what discovery proposes in a window that carries models in. ``new``
+        carried_rounds: labellings, at most, of the descent of a stream's window that carries the last
+            window's models in, before discovery (models given to a window of one's own, such as a
+            network's proposals, take the full descent); ``None``: as a window of its own
+            (``n_iter_segmentation``). 2 by default (beyond the paper): a labelling, a refit and a
+            labelling settle a window that starts where the last one ended.
+        carried_discovery: what discovery proposes in a stream's window that carries models in. ``new``
             (default, beyond the paper): only what the carried models do not explain, the separate
             groups of a cluster (objects that parted, a new object in the background's view) and
             residual regions; no halves or unions of the carried clusters, which the windows before
