@@ -1,3 +1,3 @@
 """The version of evseg_torch (tagged ``vX.Y`` in git; see ``CHANGELOG.md``)."""
 
-__version__ = "0.9.0"
+__version__ = "0.10.0"
