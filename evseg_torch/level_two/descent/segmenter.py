@@ -33,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -105,6 +106,17 @@ class LevelTwoResult:
     soft_assignments: Tensor
     energy_history: tuple[float, ...]
     timings_ms: dict[str, float] = field(default_factory=dict, compare=False)
+
+
+class _Start(NamedTuple):
+    """What one window's descent starts from: its events, initial pool and labels (or ``None``), its
+    discovery rounds and whether its pool was carried in by a stream."""
+
+    events: EventBatch
+    pool: Tensor
+    labels: Tensor | np.ndarray | None
+    discovery_rounds: int
+    carried: bool
 
 
 class GraphCutContrastSegmenter(nn.Module):
@@ -230,14 +242,8 @@ class GraphCutContrastSegmenter(nn.Module):
         """
         if isinstance(events, EventBatch) and not events.is_batched:
             rounds = self._discovery_rounds(discovery_rounds, 1)
-            return self._segment(
-                batch_of_one(check_events(events)),
-                [events],
-                [init_params],
-                [init_labels],
-                rounds,
-                _per_window(carried, 1),
-            )[0]
+            start = _Start(events, init_params, init_labels, rounds[0], _per_window(carried, 1)[0])
+            return self._segment(batch_of_one(check_events(events)), [start])[0]
         if isinstance(events, EventBatch):
             windows = [check_events(window) for window in events.unbatch()]
             batch = events
@@ -267,7 +273,8 @@ class GraphCutContrastSegmenter(nn.Module):
             )
         rounds = self._discovery_rounds(discovery_rounds, count)
         flags = _per_window(carried, count)
-        return self._segment(batch, windows, pools, labels, rounds, flags) if count else []
+        starts = [_Start(*start) for start in zip(windows, pools, labels, rounds, flags, strict=True)]
+        return self._segment(batch, starts) if count else []
 
     def _discovery_rounds(self, rounds: int | Sequence[int] | None, count: int) -> list[int]:
         """Each window's discovery rounds, checked."""
@@ -311,51 +318,34 @@ class GraphCutContrastSegmenter(nn.Module):
             collapse_weight=self.config.collapse_weight,
         )
 
-    def _segment(
-        self,
-        batch: EventBatch,
-        windows: list[EventBatch],
-        pools: list,
-        init_labels: list,
-        rounds: list[int],
-        carried: list[bool],
-    ) -> list[LevelTwoResult]:
+    def _segment(self, batch: EventBatch, starts: list[_Start]) -> list[LevelTwoResult]:
         """Segment the windows of ``batch`` together; on the CPU in groups of consecutive windows."""
         budget = _CPU_BATCH_EVENTS if batch.xy.device.type == "cpu" else None
-        groups = chunks([len(window) for window in windows], budget)
+        groups = chunks([len(start.events) for start in starts], budget)
         if len(groups) == 1:
-            return self._segment_together(batch, windows, pools, init_labels, rounds, carried)
+            return self._segment_together(batch, starts)
         results = []
         for group in groups:
-            own = [windows[index] for index in group]
-            results += self._segment_together(
-                batch_windows(own),
-                own,
-                [pools[index] for index in group],
-                [init_labels[index] for index in group],
-                [rounds[index] for index in group],
-                [carried[index] for index in group],
-            )
+            own = [starts[index] for index in group]
+            results += self._segment_together(batch_windows([start.events for start in own]), own)
         return results
 
-    def _segment_together(
-        self,
-        batch: EventBatch,
-        windows: list[EventBatch],
-        pools: list,
-        init_labels: list,
-        rounds: list[int],
-        carried: list[bool],
-    ) -> list[LevelTwoResult]:
+    def _segment_together(self, batch: EventBatch, starts: list[_Start]) -> list[LevelTwoResult]:
         """The block-coordinate descent of every window of ``batch``, in lockstep (module docstring)."""
-        clock = StageClock(len(windows))
+        clock = StageClock(len(starts))
         states = []
-        for index, (events, pool, labels, n_rounds, carries) in enumerate(
-            zip(windows, pools, init_labels, rounds, carried, strict=True)
-        ):
+        for index, start in enumerate(starts):
             states.append(
                 start_window(
-                    index, events, pool, labels, self.model, self.sensor_size, self.config, n_rounds, carries
+                    index,
+                    start.events,
+                    start.pool,
+                    start.labels,
+                    self.model,
+                    self.sensor_size,
+                    self.config,
+                    start.discovery_rounds,
+                    start.carried,
                 )
             )
             clock.lap("graph", states[-1:])
