@@ -17,7 +17,9 @@ labels, empty models dropped and the rest renumbered by size; until the labels s
 events (:mod:`~evseg_torch.level_two.solver.cmax`) and the window labelled again. Beyond the paper, a
 settled window then takes discovery's rounds (:mod:`~evseg_torch.level_two.discovery`) and the object
 phase (:mod:`~evseg_torch.level_two.objects`); ``discovery_rounds=0`` and ``objects=False`` give the
-paper's level two. The steps and the order they come in: :mod:`~evseg_torch.level_two.descent.steps`.
+paper's level two. A stream's window that carries the last one's models in (``carried``) takes a shorter
+descent: ``carried_rounds`` labellings, and discovery of what the carried models do not explain
+(``carried_discovery``). The steps and the order they come in: :mod:`~evseg_torch.level_two.descent.steps`.
 
 :class:`GraphCutContrastSegmenter` is the driver: each window's state is a
 :class:`~evseg_torch.level_two.descent.state.WindowState`, and the windows of a list or padded batch
