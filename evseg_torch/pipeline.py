@@ -236,7 +236,7 @@ class CascadedSegmenter(nn.Module):
         prepared = []
         streamed = level_one is not None
         if level_one is None:
-            level_one = [self.config.level_one.initial_models != "replace"] * len(windows)
+            level_one = [self._runs_level_one()] * len(windows)
         for window, models, runs in zip(windows, initial_models, level_one, strict=True):
             events = as_events(_event_rows(window), self.sensor_size)
             if isinstance(models, Tensor):
@@ -373,14 +373,15 @@ class CascadedSegmenter(nn.Module):
         the next window."""
         return models[self.motion.plausible(models)]
 
-    def _runs_level_one(self, index: int) -> bool:
-        """Whether level one runs in a stream's window ``index`` if it carries models in: with ``demand``,
-        on every ``refresh_windows``-th window of the stream (a window's index, not the windows before,
-        decides, so that a resumed stream runs it where the uninterrupted one did)."""
+    def _runs_level_one(self, index: int | None = None) -> bool:
+        """Whether level one runs in a window that carries models in: not with ``replace``; with
+        ``demand``, in a stream's window ``index`` only on every ``refresh_windows``-th window (a window's
+        index, not the windows before, decides, so that a resumed stream runs it where the uninterrupted
+        one did), and always in a window of one's own (``index`` ``None``)."""
         settings = self.config.level_one
-        if settings.initial_models == "demand":
+        if settings.initial_models == "demand" and index is not None:
             return index % settings.refresh_windows == 0
-        return settings.initial_models == "augment"
+        return settings.initial_models != "replace"
 
     def _segment(
         self, windows: list, initial_models, level_one: list[bool] | None = None

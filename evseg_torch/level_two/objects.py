@@ -375,7 +375,9 @@ class ObjectPhase:
             return {"label_cost": cost}
         n_models = state.params.shape[0]
         n_labelled = n_models - len(state.regions)
-        members = [np.flatnonzero(state.labels == k) for k in range(n_labelled)] + list(state.regions)
+        # Before the first labelling no label has events: each then has the whole view.
+        labels = np.full(len(state.events), -1) if state.labels is None else state.labels
+        members = [np.flatnonzero(labels == k) for k in range(n_labelled)] + list(state.regions)
         height, width = self.sensor_size
         boxes = np.tile([0.0, 0.0, width - 1.0, height - 1.0], (n_models, 1))
         for k, events in enumerate(members):
